@@ -1,0 +1,4 @@
+//! Importers from other formats into the pgrd dataset format.
+
+pub mod deform;
+pub mod pickle;

@@ -1,0 +1,45 @@
+//! The pgrd dataset format: tracked deformable-object episodes.
+//!
+//! A dataset is a directory holding `dataset.json` (see [`DatasetMeta`]) and one safetensors file
+//! per [`Episode`]. The full contract is in `docs/data-format.md`; this crate is its only reader
+//! and writer, so every tool sees the same validation.
+//!
+//! - [`Dataset::open`] reads and validates `dataset.json`; [`Dataset::load_episode`] reads one
+//!   episode and validates shapes, finiteness and index ranges. Every error names the file.
+//! - [`DatasetWriter`] writes episodes and the index atomically (temporary file, then rename).
+//! - [`import`] converts other formats (the DEFORM cable pickles) into this one.
+//!
+//! Units: metres, seconds, z up.
+//!
+//! ```
+//! use dataset::{DatasetMeta, DatasetWriter, Episode, Manipulation, Split, Dataset};
+//! use glam::Vec3;
+//! # let dir = std::env::temp_dir().join(format!("pgrd-doc-{}", std::process::id()));
+//! let meta = DatasetMeta::new("rope", 10.0, Manipulation::Grasp);
+//! let mut writer = DatasetWriter::create(&dir, meta)?;
+//! let positions = vec![Vec3::ZERO, Vec3::X, Vec3::ZERO, Vec3::X]; // 2 frames x 2 particles
+//! let grippers = vec![Vec3::ZERO, Vec3::ZERO]; // 2 frames x 1 gripper
+//! writer.add_episode(&Episode::new(2, 2, 1, positions, grippers)?, Split::Train)?;
+//! writer.finish()?;
+//! let data = Dataset::open(&dir)?;
+//! assert_eq!(data.load_episode(0)?.frames(), 2);
+//! # std::fs::remove_dir_all(&dir).ok();
+//! # Ok::<(), dataset::Error>(())
+//! ```
+
+mod atomic;
+mod episode;
+mod error;
+pub mod import;
+mod meta;
+
+pub use atomic::write_atomic;
+pub use episode::Episode;
+pub use error::Error;
+pub use meta::{
+    Dataset, DatasetMeta, DatasetWriter, EpisodeEntry, FORMAT_VERSION, Manipulation, Split,
+    Structure,
+};
+
+/// Result alias for this crate.
+pub type Result<T, E = Error> = std::result::Result<T, E>;

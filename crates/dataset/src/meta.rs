@@ -1,0 +1,259 @@
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+use crate::{Episode, Error, Result, write_atomic};
+
+/// The format tag this crate reads and writes in `dataset.json`.
+pub const FORMAT_VERSION: &str = "pgrd-dataset/1";
+
+const INDEX_FILE: &str = "dataset.json";
+
+/// How grippers act on the object.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Manipulation {
+    /// Prehensile: held particles follow their gripper rigidly while it is closed.
+    Grasp,
+    /// Non-prehensile: grippers are spheres of `gripper_radius` that push particles.
+    Push,
+}
+
+/// Which part of an experiment an episode belongs to.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Split {
+    /// Used to fit parameters and train networks.
+    Train,
+    /// Held out: used to evaluate and to choose between models.
+    Val,
+    /// Held out and untouched until final reporting.
+    Test,
+}
+
+impl std::str::FromStr for Split {
+    type Err = String;
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        match s {
+            "train" => Ok(Split::Train),
+            "val" => Ok(Split::Val),
+            "test" => Ok(Split::Test),
+            other => Err(format!("unknown split '{other}' (expected train, val or test)")),
+        }
+    }
+}
+
+impl std::fmt::Display for Split {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Split::Train => "train",
+            Split::Val => "val",
+            Split::Test => "test",
+        })
+    }
+}
+
+/// A hint about the tracked points' geometry, used to build the simulated object.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Structure {
+    /// Dense tracked points; simulate them as they are (the default).
+    #[default]
+    Points,
+    /// Sparse markers ordered along a linear object (cable, rope): the model may insert hidden
+    /// particles between consecutive markers.
+    Chain,
+    /// Points on the surface of a solid: the model may fill the inside with interior particles.
+    Volume,
+}
+
+/// One entry of the episode list in `dataset.json`.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct EpisodeEntry {
+    /// File name of the episode, relative to the dataset directory.
+    pub file: String,
+    /// The split the episode belongs to.
+    pub split: Split,
+}
+
+/// The content of `dataset.json`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct DatasetMeta {
+    /// Must equal [`FORMAT_VERSION`].
+    pub format: String,
+    /// Free-text name of the object ("rope", "DLO1", ...).
+    pub object: String,
+    /// Stored frames per second; one model step is `1 / fps` seconds.
+    pub fps: f32,
+    /// Gravity in m/s², z up.
+    pub gravity: [f32; 3],
+    /// Height of the ground plane in metres, or `None` for no ground.
+    #[serde(default)]
+    pub ground_z: Option<f32>,
+    /// How grippers act on the object.
+    pub manipulation: Manipulation,
+    /// Gripper radius in metres (grasp capture radius, or pushing sphere radius).
+    pub gripper_radius: f32,
+    /// Geometry hint for building the simulated object (optional, default `points`).
+    #[serde(default)]
+    pub structure: Structure,
+    /// The episodes, in order.
+    pub episodes: Vec<EpisodeEntry>,
+}
+
+impl DatasetMeta {
+    /// Metadata with the format's defaults: gravity −9.81 m/s² along z, ground at z = 0,
+    /// gripper radius 0.04 m, point structure, no episodes yet.
+    pub fn new(object: &str, fps: f32, manipulation: Manipulation) -> Self {
+        DatasetMeta {
+            format: FORMAT_VERSION.to_string(),
+            object: object.to_string(),
+            fps,
+            gravity: [0.0, 0.0, -9.81],
+            ground_z: Some(0.0),
+            manipulation,
+            gripper_radius: 0.04,
+            structure: Structure::Points,
+            episodes: Vec::new(),
+        }
+    }
+
+    /// Seconds per stored frame, i.e. per model step.
+    pub fn step_dt(&self) -> f32 {
+        1.0 / self.fps
+    }
+
+    fn validate(&self, path: &Path) -> Result<()> {
+        let bad = |m: String| Err(Error::invalid(path, m));
+        if self.format != FORMAT_VERSION {
+            return bad(format!(
+                "unsupported format '{}' (this version of pgrd reads '{FORMAT_VERSION}')",
+                self.format
+            ));
+        }
+        if !(self.fps.is_finite() && self.fps > 0.0) {
+            return bad(format!("fps must be a positive number, got {}", self.fps));
+        }
+        if !self.gravity.iter().all(|g| g.is_finite()) {
+            return bad("gravity must be finite".into());
+        }
+        if self.ground_z.is_some_and(|z| !z.is_finite()) {
+            return bad("ground_z must be finite or null".into());
+        }
+        if !(self.gripper_radius.is_finite() && self.gripper_radius >= 0.0) {
+            return bad(format!(
+                "gripper_radius must be a non-negative number of metres, got {}",
+                self.gripper_radius
+            ));
+        }
+        for (i, e) in self.episodes.iter().enumerate() {
+            let p = Path::new(&e.file);
+            let plain = p.components().count() == 1
+                && matches!(p.components().next(), Some(std::path::Component::Normal(_)));
+            if !plain {
+                return bad(format!(
+                    "episode {i}: file '{}' must be a plain file name inside the dataset directory",
+                    e.file
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// An opened dataset: its directory and validated metadata. Episodes are loaded on demand.
+#[derive(Clone, Debug)]
+pub struct Dataset {
+    /// The dataset directory.
+    pub root: PathBuf,
+    /// The validated content of `dataset.json`.
+    pub meta: DatasetMeta,
+}
+
+impl Dataset {
+    /// Reads and validates `<dir>/dataset.json`.
+    pub fn open(dir: impl AsRef<Path>) -> Result<Self> {
+        let root = dir.as_ref().to_path_buf();
+        let path = root.join(INDEX_FILE);
+        let text = std::fs::read_to_string(&path).map_err(|e| Error::io(&path, e))?;
+        let meta: DatasetMeta = serde_json::from_str(&text)
+            .map_err(|e| Error::invalid(&path, format!("not a valid dataset index: {e}")))?;
+        meta.validate(&path)?;
+        Ok(Dataset { root, meta })
+    }
+
+    /// Indices of the episodes in `split`, in file order.
+    pub fn split_indices(&self, split: Split) -> Vec<usize> {
+        (self.meta.episodes.iter().enumerate())
+            .filter(|(_, e)| e.split == split)
+            .map(|(i, _)| i)
+            .collect()
+    }
+
+    /// Path of episode `index`.
+    pub fn episode_path(&self, index: usize) -> Result<PathBuf> {
+        let entry = self.meta.episodes.get(index).ok_or_else(|| {
+            Error::invalid(
+                self.root.join(INDEX_FILE),
+                format!(
+                    "episode index {index} out of range ({} episodes)",
+                    self.meta.episodes.len()
+                ),
+            )
+        })?;
+        Ok(self.root.join(&entry.file))
+    }
+
+    /// Loads and validates episode `index`.
+    pub fn load_episode(&self, index: usize) -> Result<Episode> {
+        Episode::read(&self.episode_path(index)?)
+    }
+
+    /// Which particles are held by which gripper in `episode` (−1 for free): the stored `held`
+    /// when present; otherwise, under `grasp`, particles within `gripper_radius` of a gripper at
+    /// frame 0 (the nearest one); under `push`, none.
+    pub fn held(&self, episode: &Episode) -> Vec<i32> {
+        episode.held_or_default(self.meta.manipulation, self.meta.gripper_radius)
+    }
+}
+
+/// Writes a dataset: episodes as they come, then `dataset.json` on [`DatasetWriter::finish`].
+/// Every file is written atomically, so an interrupted writer never leaves a corrupt index.
+#[derive(Debug)]
+pub struct DatasetWriter {
+    root: PathBuf,
+    meta: DatasetMeta,
+}
+
+impl DatasetWriter {
+    /// Creates the directory (and parents) for a new dataset described by `meta`; episodes
+    /// already listed in `meta` are dropped.
+    pub fn create(dir: impl AsRef<Path>, mut meta: DatasetMeta) -> Result<Self> {
+        let root = dir.as_ref().to_path_buf();
+        meta.validate(&root.join(INDEX_FILE))?;
+        meta.episodes.clear();
+        std::fs::create_dir_all(&root).map_err(|e| Error::io(&root, e))?;
+        Ok(DatasetWriter { root, meta })
+    }
+
+    /// Writes `episode` as `ep_NNNN.safetensors` in `split`; returns its index.
+    pub fn add_episode(&mut self, episode: &Episode, split: Split) -> Result<usize> {
+        let index = self.meta.episodes.len();
+        let file = format!("ep_{index:04}.safetensors");
+        episode.write(&self.root.join(&file))?;
+        self.meta.episodes.push(EpisodeEntry { file, split });
+        Ok(index)
+    }
+
+    /// Writes `dataset.json` and returns the opened dataset.
+    pub fn finish(self) -> Result<Dataset> {
+        let path = self.root.join(INDEX_FILE);
+        let text = serde_json::to_string_pretty(&self.meta)
+            .map_err(|e| Error::invalid(&path, format!("cannot serialise index: {e}")))?;
+        write_atomic(&path, text.as_bytes())?;
+        Ok(Dataset {
+            root: self.root,
+            meta: self.meta,
+        })
+    }
+}

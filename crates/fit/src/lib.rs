@@ -1,0 +1,24 @@
+//! Fits a model's physical parameters to tracked episodes with CMA-ES, the paper's first stage.
+//!
+//! Contacts make gradients unreliable, so the search is black-box: each CMA-ES candidate is
+//! rolled out on a sample of training [`scene::Scene`]s and scored by the mean squared position
+//! error over the window. A [`Family`] says which parameters are searched and how a real
+//! parameter vector becomes a backbone; [`BackboneFamily`] is the paper's five parameters.
+//! Later stages add effect parameters by implementing [`Family`].
+//!
+//! - Each generation draws `samples` scenes (seeded by the run's seed and the generation), and
+//!   every candidate of that generation is scored on the same scenes, so candidates compete on
+//!   equal terms.
+//! - Rollouts run in parallel across (candidate, scene) pairs; losses are reduced in a fixed
+//!   order, so results do not depend on the thread count.
+//! - A rollout that diverges or returns non-finite values scores [`PENALTY`] instead of failing
+//!   the fit.
+//! - With a checkpoint path, the optimiser state is written atomically after every generation;
+//!   a later call with the same settings resumes from it and produces exactly the candidates
+//!   the uninterrupted run would have.
+
+mod family;
+mod run;
+
+pub use family::{BackboneFamily, Family};
+pub use run::{FitConfig, FitError, FitOutcome, Generation, PENALTY, fit, scene_loss};

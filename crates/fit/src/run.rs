@@ -1,0 +1,234 @@
+use std::path::Path;
+use std::time::Instant;
+
+use cmaes::CmaEs;
+use rand::SeedableRng;
+use rand::seq::index::sample;
+use rand_chacha::ChaCha8Rng;
+use rayon::prelude::*;
+use scene::Scene;
+use serde::{Deserialize, Serialize};
+
+use crate::Family;
+
+/// Loss given to a candidate whose rollout diverged or produced non-finite values (the
+/// reference code's value, in m²).
+pub const PENALTY: f64 = 1e8;
+
+/// Settings of one fit (the reference's defaults).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FitConfig {
+    /// Candidates per generation.
+    pub population: usize,
+    /// Generations to run.
+    pub generations: usize,
+    /// Training scenes sampled per generation.
+    pub samples: usize,
+    /// Initial step size in the normalised [0, 1] space.
+    pub sigma0: f64,
+    /// Seed of the optimiser and of the scene sampling.
+    pub seed: u64,
+}
+
+impl Default for FitConfig {
+    fn default() -> Self {
+        FitConfig {
+            population: 8,
+            generations: 20,
+            samples: 8,
+            sigma0: 0.2,
+            seed: 0,
+        }
+    }
+}
+
+/// What one generation did.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Generation {
+    /// 0-based generation index.
+    pub index: usize,
+    /// Best candidate loss of this generation, m².
+    pub best_loss: f64,
+    /// Median candidate loss of this generation, m².
+    pub median_loss: f64,
+    /// Best loss seen so far, m².
+    pub best_so_far: f64,
+    /// Candidates that diverged (scored [`PENALTY`] on some scene).
+    pub diverged: usize,
+    /// Wall time of the generation, s.
+    pub wall_s: f64,
+}
+
+/// The result of a fit.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FitOutcome {
+    /// Family name.
+    pub family: String,
+    /// Names of the parameters, in order.
+    pub names: Vec<String>,
+    /// Best parameters seen (real units, integers rounded).
+    pub best: Vec<f64>,
+    /// Their loss on the scenes of the generation they were found in, m².
+    pub best_loss: f64,
+    /// Per-generation history.
+    pub history: Vec<Generation>,
+    /// Candidates evaluated.
+    pub evaluations: u64,
+    /// Generation the run resumed from (`None`: started fresh).
+    pub resumed_from: Option<usize>,
+}
+
+/// Why a fit failed.
+#[derive(Debug, thiserror::Error)]
+pub enum FitError {
+    /// The optimiser refused its configuration or state.
+    #[error("CMA-ES: {0}")]
+    Cmaes(#[from] cmaes::Error),
+    /// There is nothing to fit to.
+    #[error("no training scenes to fit to")]
+    NoScenes,
+    /// The checkpoint file could not be read or written.
+    #[error("checkpoint {path}: {message}")]
+    Checkpoint {
+        /// The file.
+        path: String,
+        /// What went wrong.
+        message: String,
+    },
+}
+
+#[derive(Serialize, Deserialize)]
+struct Checkpoint {
+    family: String,
+    config: FitConfig,
+    scenes: usize,
+    es: CmaEs,
+    outcome: FitOutcome,
+}
+
+/// Loss of one candidate on one scene: mean squared position error, or [`PENALTY`].
+pub fn scene_loss<F: Family>(family: &F, real: &[f64], scene: &Scene) -> f64 {
+    let (params, options) = family.build(real);
+    let loss = scene
+        .rollout(&params, &scene.sim_config(), options)
+        .and_then(|pred| scene::position_mse(scene, &pred));
+    match loss {
+        Ok(l) if l.is_finite() => l,
+        _ => PENALTY,
+    }
+}
+
+fn checkpoint_error(path: &Path, message: impl ToString) -> FitError {
+    FitError::Checkpoint {
+        path: path.display().to_string(),
+        message: message.to_string(),
+    }
+}
+
+/// Fits `family` to `scenes`. `on_generation` sees every finished generation (for progress).
+pub fn fit<F: Family>(
+    scenes: &[Scene],
+    family: &F,
+    config: &FitConfig,
+    checkpoint: Option<&Path>,
+    on_generation: &mut dyn FnMut(&Generation),
+) -> Result<FitOutcome, FitError> {
+    if scenes.is_empty() {
+        return Err(FitError::NoScenes);
+    }
+    let params = family.parameters();
+    let fresh = || -> Result<(CmaEs, FitOutcome), FitError> {
+        let mut cfg = params.cmaes_config(&family.x0(), config.sigma0, config.seed)?;
+        cfg.population = Some(config.population);
+        let outcome = FitOutcome {
+            family: family.name(),
+            names: params.params().iter().map(|p| p.name.clone()).collect(),
+            best: family.x0(),
+            best_loss: f64::INFINITY,
+            history: Vec::new(),
+            evaluations: 0,
+            resumed_from: None,
+        };
+        Ok((CmaEs::new(cfg)?, outcome))
+    };
+    let (mut es, mut outcome) = match checkpoint.filter(|p| p.is_file()) {
+        Some(path) => {
+            let text = std::fs::read_to_string(path).map_err(|e| checkpoint_error(path, e))?;
+            let ck: Checkpoint = serde_json::from_str(&text).map_err(|e| checkpoint_error(path, e))?;
+            // Asking for more generations extends a run; anything else must match.
+            let same = FitConfig { generations: config.generations, ..ck.config.clone() };
+            if ck.family != family.name() || same != *config || ck.scenes != scenes.len() {
+                return Err(checkpoint_error(
+                    path,
+                    "was written by a fit with other settings or data; remove it to start afresh",
+                ));
+            }
+            let mut outcome = ck.outcome;
+            outcome.resumed_from = Some(outcome.history.len());
+            (ck.es, outcome)
+        }
+        None => fresh()?,
+    };
+    let samples = config.samples.min(scenes.len()).max(1);
+    while outcome.history.len() < config.generations {
+        let t0 = Instant::now();
+        let index = outcome.history.len();
+        let mut rng = ChaCha8Rng::seed_from_u64(config.seed ^ (index as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15));
+        let mut picked = sample(&mut rng, scenes.len(), samples).into_vec();
+        picked.sort_unstable();
+        let candidates = es.ask();
+        let reals = candidates
+            .iter()
+            .map(|u| params.to_real(u))
+            .collect::<Result<Vec<_>, _>>()?;
+        let jobs: Vec<(usize, usize)> = (0..reals.len())
+            .flat_map(|c| picked.iter().map(move |s| (c, *s)))
+            .collect();
+        let losses: Vec<f64> = jobs
+            .par_iter()
+            .map(|(c, s)| scene_loss(family, &reals[*c], &scenes[*s]))
+            .collect();
+        let fitness: Vec<f64> = losses
+            .chunks(samples)
+            .map(|l| l.iter().sum::<f64>() / samples as f64)
+            .collect();
+        let diverged = losses
+            .chunks(samples)
+            .filter(|l| l.contains(&PENALTY))
+            .count();
+        es.tell(&candidates, &fitness)?;
+        let (best_c, best_loss) = fitness
+            .iter()
+            .enumerate()
+            .fold((0, f64::INFINITY), |b, (i, f)| if *f < b.1 { (i, *f) } else { b });
+        if best_loss < outcome.best_loss {
+            outcome.best_loss = best_loss;
+            outcome.best = reals[best_c].clone();
+        }
+        let mut sorted = fitness.clone();
+        sorted.sort_by(f64::total_cmp);
+        outcome.evaluations += fitness.len() as u64;
+        let generation = Generation {
+            index,
+            best_loss,
+            median_loss: sorted[sorted.len() / 2],
+            best_so_far: outcome.best_loss,
+            diverged,
+            wall_s: t0.elapsed().as_secs_f64(),
+        };
+        outcome.history.push(generation.clone());
+        if let Some(path) = checkpoint {
+            let ck = Checkpoint {
+                family: family.name(),
+                config: config.clone(),
+                scenes: scenes.len(),
+                es: es.clone(),
+                outcome: outcome.clone(),
+            };
+            let text = serde_json::to_string(&ck).map_err(|e| checkpoint_error(path, e))?;
+            dataset::write_atomic(path, text.as_bytes()).map_err(|e| checkpoint_error(path, e))?;
+        }
+        on_generation(&generation);
+    }
+    Ok(outcome)
+}

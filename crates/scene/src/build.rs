@@ -1,0 +1,235 @@
+use dataset::{DatasetMeta, Episode, Structure};
+use glam::Vec3;
+use springs::{Actions, Backbone, BackboneOptions, SimConfig, SpringParams, State, Substep};
+
+use crate::{SceneError, Window};
+
+/// How to turn tracked points into a simulated object.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SceneConfig {
+    /// Hidden particles inserted between consecutive markers of a `chain` dataset. DEFORM's
+    /// markers are ~10 cm apart; 4 hidden particles give ~2 cm spacing, close to the rope
+    /// fixtures' tracked spacing, so one threshold range suits both.
+    pub chain_hidden_per_gap: usize,
+    /// Fill `volume` datasets with interior particles (the paper's internal points).
+    pub fill_volume: bool,
+    /// Substep selection used by [`Scene::sim_config`].
+    pub substep: Substep,
+}
+
+impl Default for SceneConfig {
+    fn default() -> Self {
+        SceneConfig {
+            chain_hidden_per_gap: 4,
+            fill_volume: true,
+            substep: Substep::Auto { safety: 0.9 },
+        }
+    }
+}
+
+/// A simulated object at the start of an evaluation window, with the actions that drive it and
+/// the truth it is scored against.
+///
+/// Particle order: the episode's `tracked` particles first (same indices as in the episode),
+/// then hidden or interior particles, which the metrics never see.
+#[derive(Clone, Debug)]
+pub struct Scene {
+    /// The window this scene covers.
+    pub window: Window,
+    /// Number of tracked particles (the first ones).
+    pub tracked: usize,
+    /// Gripper index per simulated particle, −1 for free.
+    pub held: Vec<i32>,
+    /// State of every simulated particle at the start frame (m, m/s).
+    pub init: State,
+    /// Gripper positions and closed flags for frames `start ..= start + steps`.
+    pub actions: Actions,
+    /// Tracked positions at frames `start + 1 ..= start + steps`, m.
+    pub truth: Vec<Vec<Vec3>>,
+    /// Whether each tracked particle was seen at those frames.
+    pub visible: Vec<Vec<bool>>,
+    config: SimConfig,
+}
+
+impl Scene {
+    /// Builds the scene of `episode` over `window`.
+    pub fn new(
+        meta: &DatasetMeta,
+        episode: &Episode,
+        window: Window,
+        config: &SceneConfig,
+    ) -> Result<Self, SceneError> {
+        let last = window.start + window.steps;
+        if window.start == 0 || last >= episode.frames() {
+            return Err(SceneError::TooShort {
+                frames: episode.frames(),
+                needed: last + 1,
+                protocol: "this",
+            });
+        }
+        let fps = meta.fps;
+        let x0 = episode.frame(window.start);
+        let xm = episode.frame(window.start - 1);
+        let v0: Vec<Vec3> = x0.iter().zip(xm).map(|(a, b)| (*a - *b) * fps).collect();
+        let mut x = x0.to_vec();
+        let mut v = v0;
+        let mut held = episode.held_or_default(meta.manipulation, meta.gripper_radius);
+        match meta.structure {
+            Structure::Chain if config.chain_hidden_per_gap > 0 => {
+                let (hx, hv) = densify_chain(&x, &v, config.chain_hidden_per_gap);
+                held.extend(std::iter::repeat_n(-1, hx.len()));
+                x.extend(hx);
+                v.extend(hv);
+            }
+            Structure::Volume if config.fill_volume => {
+                let spacing = median_spacing(&x);
+                let interior = springs::fill_interior(&x, spacing)?;
+                let iv = interior.iter().map(|p| mean_velocity_near(&x, &v, *p, 4)).collect::<Vec<_>>();
+                held.extend(std::iter::repeat_n(-1, interior.len()));
+                x.extend(interior);
+                v.extend(iv);
+            }
+            _ => {}
+        }
+        let frames = window.start..=last;
+        let positions = frames.clone().map(|t| episode.gripper_frame(t).to_vec()).collect();
+        let closed = frames
+            .map(|t| (0..episode.grippers()).map(|g| episode.closed(t, g)).collect())
+            .collect();
+        let actions = Actions::new(positions, closed)?;
+        let truth_frames = window.start + 1..=last;
+        let truth = truth_frames.clone().map(|t| episode.frame(t).to_vec()).collect();
+        let visible = truth_frames
+            .map(|t| (0..episode.particles()).map(|i| episode.visible(t, i)).collect())
+            .collect();
+        let sim = SimConfig {
+            step_dt: meta.step_dt(),
+            gravity: Vec3::from_array(meta.gravity),
+            ground_z: meta.ground_z,
+            manipulation: match meta.manipulation {
+                dataset::Manipulation::Grasp => springs::Manipulation::Grasp,
+                dataset::Manipulation::Push => springs::Manipulation::Push,
+            },
+            gripper_radius: meta.gripper_radius,
+            substep: config.substep,
+            ..SimConfig::default()
+        };
+        Ok(Scene {
+            window,
+            tracked: episode.particles(),
+            held,
+            init: State { x, v },
+            actions,
+            truth,
+            visible,
+            config: sim,
+        })
+    }
+
+    /// The simulator settings this scene's dataset implies (step, gravity, ground, grippers).
+    pub fn sim_config(&self) -> SimConfig {
+        self.config
+    }
+
+    /// Number of simulated particles (tracked + hidden/interior).
+    pub fn particles(&self) -> usize {
+        self.init.x.len()
+    }
+
+    /// The backbone for this scene: springs from the start frame; `options` carries
+    /// per-particle masses and effects (none by default).
+    pub fn backbone(
+        &self,
+        params: &SpringParams,
+        config: &SimConfig,
+        options: BackboneOptions,
+    ) -> Result<Backbone, SceneError> {
+        Ok(Backbone::with_options(&self.init.x, &self.held, *params, *config, options)?)
+    }
+
+    /// Rolls the backbone out over the window; returns the tracked particles' positions after
+    /// each step (`steps` entries), m.
+    pub fn rollout(
+        &self,
+        params: &SpringParams,
+        config: &SimConfig,
+        options: BackboneOptions,
+    ) -> Result<Vec<Vec<Vec3>>, SceneError> {
+        let backbone = self.backbone(params, config, options)?;
+        let rollout = backbone.rollout(&self.init, &self.actions)?;
+        Ok(rollout
+            .positions
+            .into_iter()
+            .skip(1)
+            .map(|mut p| {
+                p.truncate(self.tracked);
+                p
+            })
+            .collect())
+    }
+}
+
+/// `per_gap` particles evenly spaced on each segment between consecutive markers, with
+/// velocities interpolated the same way.
+fn densify_chain(x: &[Vec3], v: &[Vec3], per_gap: usize) -> (Vec<Vec3>, Vec<Vec3>) {
+    let mut hx = Vec::with_capacity(per_gap * x.len());
+    let mut hv = Vec::with_capacity(per_gap * x.len());
+    for i in 0..x.len().saturating_sub(1) {
+        for k in 1..=per_gap {
+            let s = k as f32 / (per_gap + 1) as f32;
+            hx.push(x[i].lerp(x[i + 1], s));
+            hv.push(v[i].lerp(v[i + 1], s));
+        }
+    }
+    (hx, hv)
+}
+
+/// Median distance from each point to its nearest neighbour, m (the interior fill spacing).
+fn median_spacing(x: &[Vec3]) -> f32 {
+    let mut tree = kiddo::KdTree::<f32, 3>::new();
+    for (i, p) in x.iter().enumerate() {
+        tree.add(&p.to_array(), i as u64);
+    }
+    let mut d: Vec<f32> = x
+        .iter()
+        .map(|p| {
+            let n = tree.nearest_n::<kiddo::SquaredEuclidean>(&p.to_array(), 2);
+            n.get(1).map_or(0.0, |n| n.distance.sqrt())
+        })
+        .collect();
+    d.sort_by(f32::total_cmp);
+    d.get(d.len() / 2).copied().unwrap_or(0.0)
+}
+
+/// Mean velocity of the `k` tracked particles nearest to `p`.
+fn mean_velocity_near(x: &[Vec3], v: &[Vec3], p: Vec3, k: usize) -> Vec3 {
+    let mut d: Vec<(f32, usize)> = x.iter().enumerate().map(|(i, q)| (q.distance_squared(p), i)).collect();
+    let k = k.min(d.len());
+    if k == 0 {
+        return Vec3::ZERO;
+    }
+    d.select_nth_unstable_by(k - 1, |a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+    d[..k].iter().map(|(_, i)| v[*i]).sum::<Vec3>() / k as f32
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn chain_hidden_particles_lie_between_markers() {
+        let x = [Vec3::ZERO, Vec3::X, Vec3::new(1.0, 1.0, 0.0)];
+        let v = [Vec3::Z, Vec3::Z, Vec3::ZERO];
+        let (hx, hv) = densify_chain(&x, &v, 3);
+        assert_eq!(hx.len(), 6);
+        assert!((hx[1] - Vec3::new(0.5, 0.0, 0.0)).length() < 1e-6);
+        assert!((hx[4] - Vec3::new(1.0, 0.5, 0.0)).length() < 1e-6);
+        assert!((hv[4] - Vec3::Z * 0.5).length() < 1e-6);
+    }
+
+    #[test]
+    fn median_spacing_of_a_line() {
+        let x: Vec<Vec3> = (0..10).map(|i| Vec3::X * (i as f32 * 0.02)).collect();
+        assert!((median_spacing(&x) - 0.02).abs() < 1e-6);
+    }
+}

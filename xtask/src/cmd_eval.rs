@@ -1,0 +1,217 @@
+//! `cargo xtask eval`: roll the run's model out on a split and report the paper's metrics.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::Context;
+use dataset::{Dataset, Split};
+use metrics::{ChamferConvention, RolloutAggregate};
+use rayon::prelude::*;
+use scene::{Protocol, SceneConfig, StepErrors};
+use serde::Serialize;
+
+use crate::common::{ProtocolArg, load_scenes, read_backbone};
+use crate::report::{Curve, plot_curves, write_json};
+
+/// Arguments of `eval`.
+#[derive(clap::Args)]
+pub struct EvalArgs {
+    /// Dataset directory.
+    #[arg(long)]
+    pub data: PathBuf,
+    /// Run directory holding backbone.json.
+    #[arg(long)]
+    pub run: PathBuf,
+    /// Split to evaluate.
+    #[arg(long, default_value = "val")]
+    pub split: Split,
+    /// Evaluation protocol.
+    #[arg(long, value_enum, default_value_t = ProtocolArg::Paper)]
+    pub protocol: ProtocolArg,
+    /// Write the report as JSON here (default: <run>/eval_<split>.json).
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+    /// Write the error-per-step plot here (default: <run>/eval_<split>.svg).
+    #[arg(long)]
+    pub plot: Option<PathBuf>,
+    /// Skip exact EMD (faster on large clouds).
+    #[arg(long)]
+    pub no_emd: bool,
+}
+
+/// A metric's summary in cm.
+#[derive(Serialize)]
+pub struct Summary {
+    /// Mean over steps of the per-step mean over episodes.
+    pub mean: f64,
+    /// Mean over steps of the per-step standard deviation over episodes (the tables' ±).
+    pub std: f64,
+    /// What exactly was measured.
+    pub convention: &'static str,
+}
+
+/// The report `eval` writes.
+#[derive(Serialize)]
+pub struct EvalReport {
+    /// Model name.
+    pub model: String,
+    /// Dataset directory.
+    pub dataset: String,
+    /// Object name from the dataset.
+    pub object: String,
+    /// Split evaluated.
+    pub split: String,
+    /// Protocol.
+    pub protocol: String,
+    /// Episodes evaluated.
+    pub episodes: usize,
+    /// Steps per rollout.
+    pub steps: usize,
+    /// Summaries (cm; `deform_l1_m` in m).
+    pub metrics: serde_json::Value,
+    /// Per-step means over episodes, cm.
+    pub per_step_cm: serde_json::Value,
+    /// Rollouts that diverged (scored as missing; the command fails if any does).
+    pub diverged: usize,
+    /// Wall time of the rollouts, s.
+    pub rollout_wall_s: f64,
+    /// Wall time of the whole command, s.
+    pub wall_s: f64,
+}
+
+fn summary(curves: &[Vec<f64>], convention: &'static str) -> anyhow::Result<(Summary, Vec<f64>)> {
+    let agg = RolloutAggregate::from_per_episode_curves(curves)?.scaled(100.0);
+    Ok((
+        Summary {
+            mean: agg.mean,
+            std: agg.std,
+            convention,
+        },
+        agg.per_step_mean,
+    ))
+}
+
+/// Evaluates the run's model and writes the JSON report and the plot.
+pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
+    let t0 = Instant::now();
+    let data = Dataset::open(&args.data)?;
+    let backbone = read_backbone(&args.run)?;
+    let protocol: Protocol = args.protocol.into();
+    let scenes = load_scenes(&data, args.split, protocol, &SceneConfig::default())?;
+    let t_roll = Instant::now();
+    let results: Vec<anyhow::Result<(Vec<StepErrors>, f64)>> = scenes
+        .par_iter()
+        .map(|(i, scene)| {
+            let pred = scene
+                .rollout(&backbone.params, &scene.sim_config(), Default::default())
+                .with_context(|| format!("episode {i}"))?;
+            let errors = scene::score_steps(scene, &pred, !args.no_emd)?;
+            Ok((errors, scene::deform_l1(scene, &pred)?))
+        })
+        .collect();
+    let rollout_wall_s = t_roll.elapsed().as_secs_f64();
+    let mut per_episode = Vec::new();
+    let mut diverged = 0;
+    for r in results {
+        match r {
+            Ok(v) => per_episode.push(v),
+            Err(e) => {
+                diverged += 1;
+                eprintln!("warning: {e:#}");
+            }
+        }
+    }
+    anyhow::ensure!(
+        !per_episode.is_empty(),
+        "every rollout failed; the fitted parameters do not simulate this data"
+    );
+    let curve = |f: fn(&StepErrors) -> f64| -> Vec<Vec<f64>> {
+        per_episode.iter().map(|(e, _)| e.iter().map(f).collect()).collect()
+    };
+    let (mde, mde_steps) = summary(&curve(|e| e.mde), "mean Euclidean distance of same-index points")?;
+    let (ch, ch_steps) = summary(
+        &curve(StepErrors::chamfer_two_sided),
+        ChamferConvention::TwoSidedSum.label(),
+    )?;
+    let (ch1, ch1_steps) = summary(
+        &curve(|e| e.chamfer_pred_to_gt),
+        ChamferConvention::PredToGt.label(),
+    )?;
+    let mut metrics = serde_json::json!({
+        "mde_cm": mde,
+        "chamfer_cm": ch,
+        "chamfer_pred_to_gt_cm": ch1,
+    });
+    let mut per_step = serde_json::json!({
+        "mde_cm": mde_steps,
+        "chamfer_cm": ch_steps,
+        "chamfer_pred_to_gt_cm": ch1_steps,
+    });
+    let mut curves = vec![
+        Curve { label: "MDE".into(), y: &mde_steps },
+        Curve { label: "Chamfer (two-sided sum)".into(), y: &ch_steps },
+    ];
+    let emd_steps;
+    if !args.no_emd {
+        let (emd, steps) = summary(&curve(|e| e.emd), "exact EMD, mean matched Euclidean distance")?;
+        metrics["emd_cm"] = serde_json::to_value(emd)?;
+        per_step["emd_cm"] = serde_json::to_value(&steps)?;
+        emd_steps = steps;
+        curves.push(Curve { label: "EMD".into(), y: &emd_steps });
+    }
+    if matches!(protocol, Protocol::Deform) {
+        let l1 = per_episode.iter().map(|(_, l)| l).sum::<f64>() / per_episode.len() as f64;
+        metrics["deform_l1_m"] = serde_json::json!({
+            "mean": l1,
+            "convention": "DEFORM: mean |coordinate error| over all markers (driven included), summed over steps / frames"
+        });
+    }
+    let split = args.split.to_string();
+    let plot = args.plot.clone().unwrap_or_else(|| args.run.join(format!("eval_{split}.svg")));
+    plot_curves(
+        &plot,
+        &format!("{} ({} episodes, {split}): {}", data.meta.object, per_episode.len(), backbone.model),
+        "rollout step",
+        "error (cm)",
+        1.0,
+        &curves,
+    )?;
+    let report = EvalReport {
+        model: backbone.model.clone(),
+        dataset: args.data.display().to_string(),
+        object: data.meta.object.clone(),
+        split: split.clone(),
+        protocol: protocol.name().into(),
+        episodes: per_episode.len(),
+        steps: mde_steps.len(),
+        metrics,
+        per_step_cm: per_step,
+        diverged,
+        rollout_wall_s,
+        wall_s: t0.elapsed().as_secs_f64(),
+    };
+    let json = args.json.clone().unwrap_or_else(|| args.run.join(format!("eval_{split}.json")));
+    write_json(&json, &report)?;
+    let m = &report.metrics;
+    let emd_text = m
+        .get("emd_cm")
+        .map(|e| format!(", EMD {:.3} ± {:.3} cm", e["mean"].as_f64().unwrap_or(f64::NAN), e["std"].as_f64().unwrap_or(f64::NAN)))
+        .unwrap_or_default();
+    println!(
+        "{} {} on {} ({} {split} episodes, {} steps): MDE {:.3} ± {:.3} cm, Chamfer {:.3} ± {:.3} cm [two-sided sum]{emd_text}{}  ({:.1} s) -> {}",
+        report.model,
+        report.protocol,
+        report.object,
+        report.episodes,
+        report.steps,
+        mde.mean,
+        mde.std,
+        ch.mean,
+        ch.std,
+        m.get("deform_l1_m").map(|l| format!(", deform_l1 {:.4} m", l["mean"].as_f64().unwrap_or(f64::NAN))).unwrap_or_default(),
+        report.wall_s,
+        json.display(),
+    );
+    anyhow::ensure!(diverged == 0, "{diverged} rollouts diverged (see warnings above)");
+    Ok(report)
+}

@@ -1,0 +1,128 @@
+//! `cargo xtask fit`: CMA-ES over the backbone's five parameters on the train split.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::Context;
+use dataset::{Dataset, Split};
+use fit::{BackboneFamily, FitConfig};
+use indicatif::{ProgressBar, ProgressStyle};
+use scene::SceneConfig;
+
+use crate::common::{BackboneFile, ProtocolArg, backbone_path, load_scenes};
+use crate::report::write_json;
+
+/// Arguments of `fit`.
+#[derive(clap::Args)]
+pub struct FitArgs {
+    /// Dataset directory.
+    #[arg(long)]
+    pub data: PathBuf,
+    /// Run directory (created); gets backbone.json and a checkpoint.
+    #[arg(long)]
+    pub run: PathBuf,
+    /// Candidates per generation.
+    #[arg(long, default_value_t = 8)]
+    pub population: usize,
+    /// Generations.
+    #[arg(long, default_value_t = 20)]
+    pub generations: usize,
+    /// Training episodes sampled per generation.
+    #[arg(long, default_value_t = 8)]
+    pub samples: usize,
+    /// Seed of the optimiser and the sampling.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Window of each training episode.
+    #[arg(long, value_enum, default_value_t = ProtocolArg::Paper)]
+    pub protocol: ProtocolArg,
+    /// Search bounds: the reference code's, or its wider set used for the paper.
+    #[arg(long, value_enum, default_value_t = BoundsArg::Reference)]
+    pub bounds: BoundsArg,
+    /// Print nothing but the final line.
+    #[arg(long)]
+    pub quiet: bool,
+}
+
+/// `--bounds`.
+#[derive(Clone, Copy, clap::ValueEnum)]
+pub enum BoundsArg {
+    /// damping [1, 1000], stiffness [10, 5e4], threshold [0.002, 0.05] m, springs [4, 200], friction [0.01, 0.5].
+    Reference,
+    /// damping to 1e4, stiffness to 5e5, springs to 500.
+    Paper,
+}
+
+/// Runs the fit and writes `<run>/backbone.json`.
+pub fn run(args: &FitArgs) -> anyhow::Result<BackboneFile> {
+    let t0 = Instant::now();
+    let data = Dataset::open(&args.data)?;
+    let scenes: Vec<_> = load_scenes(&data, Split::Train, args.protocol.into(), &SceneConfig::default())?
+        .into_iter()
+        .map(|(_, s)| s)
+        .collect();
+    std::fs::create_dir_all(&args.run).with_context(|| format!("creating {}", args.run.display()))?;
+    let bounds = match args.bounds {
+        BoundsArg::Reference => springs::REFERENCE_BOUNDS,
+        BoundsArg::Paper => springs::PAPER_BOUNDS,
+    };
+    let family = BackboneFamily::new(bounds)?;
+    let config = FitConfig {
+        population: args.population,
+        generations: args.generations,
+        samples: args.samples,
+        sigma0: 0.2,
+        seed: args.seed,
+    };
+    anyhow::ensure!(
+        config.population >= 2 && config.samples >= 1,
+        "--population must be >= 2 and --samples >= 1"
+    );
+    let checkpoint = args.run.join("fit.checkpoint.json");
+    let bar = if args.quiet {
+        ProgressBar::hidden()
+    } else {
+        ProgressBar::new(config.generations as u64)
+    };
+    bar.set_style(
+        ProgressStyle::with_template("fit {bar:30} {pos}/{len} generations  {msg}  [{elapsed} < {eta}]")?,
+    );
+    let outcome = fit::fit(&scenes, &family, &config, Some(&checkpoint), &mut |g| {
+        bar.set_position(g.index as u64 + 1);
+        bar.set_message(format!(
+            "best {:.3e} m² (gen {:.3e}, {} diverged, {:.1} s)",
+            g.best_so_far, g.best_loss, g.diverged, g.wall_s
+        ));
+    })?;
+    bar.finish();
+    if let Some(g) = outcome.resumed_from {
+        println!("resumed from generation {g} ({})", checkpoint.display());
+    }
+    let params = BackboneFamily::params(&outcome.best);
+    let generations_wall: f64 = outcome.history.iter().map(|g| g.wall_s).sum();
+    let file = BackboneFile {
+        model: "spring-mass".into(),
+        dataset: args.data.display().to_string(),
+        protocol: scene::Protocol::from(args.protocol).name().into(),
+        params,
+        fit: outcome,
+        config,
+        wall_s: generations_wall,
+        session_wall_s: t0.elapsed().as_secs_f64(),
+    };
+    write_json(&backbone_path(&args.run), &file)?;
+    println!(
+        "fitted {} on {} train episodes in {:.1} s: stiffness {:.0} N/m, damping {:.1} N·s/m, threshold {:.4} m, max springs {}, friction {:.3}; loss {:.3e} m² -> {}",
+        data.meta.object,
+        scenes.len(),
+        t0.elapsed().as_secs_f64(),
+        params.stiffness,
+        params.damping,
+        params.threshold,
+        params.max_springs,
+        params.ground_friction,
+        file.fit.best_loss,
+        backbone_path(&args.run).display()
+    );
+    Ok(file)
+}
