@@ -34,7 +34,12 @@ pub struct DemoArgs {
 pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
     let t0 = Instant::now();
     let mut objects: Vec<PathBuf> = std::fs::read_dir(&args.fixtures)
-        .with_context(|| format!("reading {} (run from the repository root)", args.fixtures.display()))?
+        .with_context(|| {
+            format!(
+                "reading {} (run from the repository root)",
+                args.fixtures.display()
+            )
+        })?
         .filter_map(|e| e.ok().map(|e| e.path()))
         .filter(|p| p.join("dataset.json").is_file())
         .filter(|p| {
@@ -44,14 +49,22 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
         })
         .collect();
     objects.sort();
-    anyhow::ensure!(!objects.is_empty(), "no fixture datasets under {}", args.fixtures.display());
+    anyhow::ensure!(
+        !objects.is_empty(),
+        "no fixture datasets under {}",
+        args.fixtures.display()
+    );
     println!(
         "pgrd demo: fit the spring-mass backbone (CMA-ES, {} generations) on each fixture's train episodes, then predict its val episodes from their first frames alone.\n",
         args.generations
     );
     let mut rows = Vec::new();
     for dir in &objects {
-        let name = dir.file_name().and_then(|n| n.to_str()).unwrap_or("object").to_string();
+        let name = dir
+            .file_name()
+            .and_then(|n| n.to_str())
+            .unwrap_or("object")
+            .to_string();
         let run = args.out.join(&name);
         // A fresh fit each time: the demo shows the whole job, not a cached result.
         let _ = std::fs::remove_file(run.join("fit.checkpoint.json"));
@@ -94,11 +107,29 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
         let pred = scene.rollout(&fitted.params, &scene.sim_config(), Default::default())?;
         let last = pred.len() - 1;
         write_ply(&run.join("final_predicted.ply"), &pred[last], ep.colors())?;
-        write_ply(&run.join("final_truth.ply"), &scene.truth[last], ep.colors())?;
-        rows.push((name, report.metrics["mde_cm"]["mean"].as_f64().unwrap_or(f64::NAN), report.metrics["chamfer_cm"]["mean"].as_f64().unwrap_or(f64::NAN), report.metrics["emd_cm"]["mean"].as_f64().unwrap_or(f64::NAN)));
+        write_ply(
+            &run.join("final_truth.ply"),
+            &scene.truth[last],
+            ep.colors(),
+        )?;
+        rows.push((
+            name,
+            report.metrics["mde_cm"]["mean"]
+                .as_f64()
+                .unwrap_or(f64::NAN),
+            report.metrics["chamfer_cm"]["mean"]
+                .as_f64()
+                .unwrap_or(f64::NAN),
+            report.metrics["emd_cm"]["mean"]
+                .as_f64()
+                .unwrap_or(f64::NAN),
+        ));
         println!();
     }
-    println!("{:<10} {:>10} {:>22} {:>10}", "object", "MDE (cm)", "Chamfer 2-sided (cm)", "EMD (cm)");
+    println!(
+        "{:<10} {:>10} {:>22} {:>10}",
+        "object", "MDE (cm)", "Chamfer 2-sided (cm)", "EMD (cm)"
+    );
     for (name, mde, ch, emd) in &rows {
         println!("{name:<10} {mde:>10.3} {ch:>22.3} {emd:>10.3}");
     }

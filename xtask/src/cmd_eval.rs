@@ -53,8 +53,11 @@ pub struct Summary {
 /// The report `eval` writes.
 #[derive(Serialize)]
 pub struct EvalReport {
-    /// Model name.
+    /// Model name ("spring-mass", or "pgrd" when `<run>/residual.safetensors` exists).
     pub model: String,
+    /// Ablation variant of the residual network ("full" for the paper's); absent for the backbone.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub variant: Option<String>,
     /// Dataset directory.
     pub dataset: String,
     /// Object name from the dataset.
@@ -98,13 +101,60 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
     let backbone = read_backbone(&args.run)?;
     let protocol: Protocol = args.protocol.into();
     let scenes = load_scenes(&data, args.split, protocol, &SceneConfig::default())?;
+    let residual_path = args.run.join("residual.safetensors");
+    let net = if residual_path.exists() {
+        Some(
+            residual::ResidualNet::load(&residual_path)
+                .with_context(|| format!("loading {}", residual_path.display()))?,
+        )
+    } else {
+        None
+    };
+    let model_name = if net.is_some() {
+        "pgrd".to_string()
+    } else {
+        backbone.model.clone()
+    };
+    let histories = match &net {
+        Some(_) => scenes
+            .iter()
+            .map(|(i, scene)| {
+                Ok(Some(residual::History::from_episode(
+                    scene,
+                    &data.load_episode(*i)?,
+                    data.meta.fps,
+                )?))
+            })
+            .collect::<anyhow::Result<Vec<_>>>()?,
+        None => vec![None; scenes.len()],
+    };
     let t_roll = Instant::now();
     let results: Vec<anyhow::Result<(Vec<StepErrors>, f64)>> = scenes
         .par_iter()
-        .map(|(i, scene)| {
-            let pred = scene
-                .rollout(&backbone.params, &scene.sim_config(), Default::default())
-                .with_context(|| format!("episode {i}"))?;
+        .zip(&histories)
+        .map(|((i, scene), history)| {
+            let pred = match (&net, history) {
+                (Some(net), Some(history)) => {
+                    let bb = scene.backbone(
+                        &backbone.params,
+                        &scene.sim_config(),
+                        Default::default(),
+                    )?;
+                    let out =
+                        residual::hybrid_rollout(net, &bb, scene, history, Default::default())
+                            .with_context(|| format!("episode {i}"))?;
+                    out.positions
+                        .into_iter()
+                        .map(|mut p| {
+                            p.truncate(scene.tracked);
+                            p
+                        })
+                        .collect()
+                }
+                _ => scene
+                    .rollout(&backbone.params, &scene.sim_config(), Default::default())
+                    .with_context(|| format!("episode {i}"))?,
+            };
             let errors = scene::score_steps(scene, &pred, !args.no_emd)?;
             Ok((errors, scene::deform_l1(scene, &pred)?))
         })
@@ -121,14 +171,40 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
             }
         }
     }
-    anyhow::ensure!(
-        !per_episode.is_empty(),
-        "every rollout failed; the fitted parameters do not simulate this data"
-    );
+    if per_episode.is_empty() {
+        let json = args
+            .json
+            .clone()
+            .unwrap_or_else(|| args.run.join(format!("eval_{}.json", args.split)));
+        write_json(
+            &json,
+            &serde_json::json!({
+                "model": model_name,
+                "variant": net.as_ref().map(|n| n.config().variant()),
+                "dataset": args.data.display().to_string(),
+                "object": data.meta.object,
+                "split": args.split.to_string(),
+                "protocol": protocol.name(),
+                "episodes": 0,
+                "diverged": diverged,
+                "status": "every rollout diverged",
+            }),
+        )?;
+        anyhow::bail!(
+            "{model_name}: every one of {diverged} rollouts diverged (no scores; see {})",
+            json.display()
+        );
+    }
     let curve = |f: fn(&StepErrors) -> f64| -> Vec<Vec<f64>> {
-        per_episode.iter().map(|(e, _)| e.iter().map(f).collect()).collect()
+        per_episode
+            .iter()
+            .map(|(e, _)| e.iter().map(f).collect())
+            .collect()
     };
-    let (mde, mde_steps) = summary(&curve(|e| e.mde), "mean Euclidean distance of same-index points")?;
+    let (mde, mde_steps) = summary(
+        &curve(|e| e.mde),
+        "mean Euclidean distance of same-index points",
+    )?;
     let (ch, ch_steps) = summary(
         &curve(StepErrors::chamfer_two_sided),
         ChamferConvention::TwoSidedSum.label(),
@@ -148,16 +224,28 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
         "chamfer_pred_to_gt_cm": ch1_steps,
     });
     let mut curves = vec![
-        Curve { label: "MDE".into(), y: &mde_steps },
-        Curve { label: "Chamfer (two-sided sum)".into(), y: &ch_steps },
+        Curve {
+            label: "MDE".into(),
+            y: &mde_steps,
+        },
+        Curve {
+            label: "Chamfer (two-sided sum)".into(),
+            y: &ch_steps,
+        },
     ];
     let emd_steps;
     if !args.no_emd {
-        let (emd, steps) = summary(&curve(|e| e.emd), "exact EMD, mean matched Euclidean distance")?;
+        let (emd, steps) = summary(
+            &curve(|e| e.emd),
+            "exact EMD, mean matched Euclidean distance",
+        )?;
         metrics["emd_cm"] = serde_json::to_value(emd)?;
         per_step["emd_cm"] = serde_json::to_value(&steps)?;
         emd_steps = steps;
-        curves.push(Curve { label: "EMD".into(), y: &emd_steps });
+        curves.push(Curve {
+            label: "EMD".into(),
+            y: &emd_steps,
+        });
     }
     if matches!(protocol, Protocol::Deform) {
         let l1 = per_episode.iter().map(|(_, l)| l).sum::<f64>() / per_episode.len() as f64;
@@ -167,17 +255,25 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
         });
     }
     let split = args.split.to_string();
-    let plot = args.plot.clone().unwrap_or_else(|| args.run.join(format!("eval_{split}.svg")));
+    let plot = args
+        .plot
+        .clone()
+        .unwrap_or_else(|| args.run.join(format!("eval_{split}.svg")));
     plot_curves(
         &plot,
-        &format!("{} ({} episodes, {split}): {}", data.meta.object, per_episode.len(), backbone.model),
+        &format!(
+            "{} ({} episodes, {split}): {model_name}",
+            data.meta.object,
+            per_episode.len()
+        ),
         "rollout step",
         "error (cm)",
         1.0,
         &curves,
     )?;
     let report = EvalReport {
-        model: backbone.model.clone(),
+        model: model_name.clone(),
+        variant: net.as_ref().map(|n| n.config().variant()),
         dataset: args.data.display().to_string(),
         object: data.meta.object.clone(),
         split: split.clone(),
@@ -190,12 +286,21 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
         rollout_wall_s,
         wall_s: t0.elapsed().as_secs_f64(),
     };
-    let json = args.json.clone().unwrap_or_else(|| args.run.join(format!("eval_{split}.json")));
+    let json = args
+        .json
+        .clone()
+        .unwrap_or_else(|| args.run.join(format!("eval_{split}.json")));
     write_json(&json, &report)?;
     let m = &report.metrics;
     let emd_text = m
         .get("emd_cm")
-        .map(|e| format!(", EMD {:.3} ± {:.3} cm", e["mean"].as_f64().unwrap_or(f64::NAN), e["std"].as_f64().unwrap_or(f64::NAN)))
+        .map(|e| {
+            format!(
+                ", EMD {:.3} ± {:.3} cm",
+                e["mean"].as_f64().unwrap_or(f64::NAN),
+                e["std"].as_f64().unwrap_or(f64::NAN)
+            )
+        })
         .unwrap_or_default();
     println!(
         "{} {} on {} ({} {split} episodes, {} steps): MDE {:.3} ± {:.3} cm, Chamfer {:.3} ± {:.3} cm [two-sided sum]{emd_text}{}  ({:.1} s) -> {}",
@@ -208,10 +313,18 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
         mde.std,
         ch.mean,
         ch.std,
-        m.get("deform_l1_m").map(|l| format!(", deform_l1 {:.4} m", l["mean"].as_f64().unwrap_or(f64::NAN))).unwrap_or_default(),
+        m.get("deform_l1_m")
+            .map(|l| format!(
+                ", deform_l1 {:.4} m",
+                l["mean"].as_f64().unwrap_or(f64::NAN)
+            ))
+            .unwrap_or_default(),
         report.wall_s,
         json.display(),
     );
-    anyhow::ensure!(diverged == 0, "{diverged} rollouts diverged (see warnings above)");
+    anyhow::ensure!(
+        diverged == 0,
+        "{diverged} rollouts diverged (see warnings above)"
+    );
     Ok(report)
 }

@@ -57,11 +57,17 @@ pub enum BoundsArg {
 pub fn run(args: &FitArgs) -> anyhow::Result<BackboneFile> {
     let t0 = Instant::now();
     let data = Dataset::open(&args.data)?;
-    let scenes: Vec<_> = load_scenes(&data, Split::Train, args.protocol.into(), &SceneConfig::default())?
-        .into_iter()
-        .map(|(_, s)| s)
-        .collect();
-    std::fs::create_dir_all(&args.run).with_context(|| format!("creating {}", args.run.display()))?;
+    let scenes: Vec<_> = load_scenes(
+        &data,
+        Split::Train,
+        args.protocol.into(),
+        &SceneConfig::default(),
+    )?
+    .into_iter()
+    .map(|(_, s)| s)
+    .collect();
+    std::fs::create_dir_all(&args.run)
+        .with_context(|| format!("creating {}", args.run.display()))?;
     let bounds = match args.bounds {
         BoundsArg::Reference => springs::REFERENCE_BOUNDS,
         BoundsArg::Paper => springs::PAPER_BOUNDS,
@@ -84,9 +90,9 @@ pub fn run(args: &FitArgs) -> anyhow::Result<BackboneFile> {
     } else {
         ProgressBar::new(config.generations as u64)
     };
-    bar.set_style(
-        ProgressStyle::with_template("fit {bar:30} {pos}/{len} generations  {msg}  [{elapsed} < {eta}]")?,
-    );
+    bar.set_style(ProgressStyle::with_template(
+        "fit {bar:30} {pos}/{len} generations  {msg}  [{elapsed} < {eta}]",
+    )?);
     let outcome = fit::fit(&scenes, &family, &config, Some(&checkpoint), &mut |g| {
         bar.set_position(g.index as u64 + 1);
         bar.set_message(format!(

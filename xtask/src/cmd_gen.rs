@@ -46,10 +46,13 @@ pub struct GenArgs {
     /// Dataset size preset.
     #[arg(long, value_enum, default_value = "full")]
     pub preset: Preset,
-    /// Also render frames 0, 13, 26 and 39 of the first episode to this PNG (`{object}` in the
-    /// path is replaced by the object's name).
+    /// Also render frames 0, 13, 26 and 39 of the episode whose gripper travels farthest to this
+    /// PNG (`{object}` in the path is replaced by the object's name).
     #[arg(long)]
     pub preview: Option<PathBuf>,
+    /// Render this episode (dataset index) instead of the busiest one.
+    #[arg(long, requires = "preview")]
+    pub preview_episode: Option<usize>,
 }
 
 /// Runs `gen`.
@@ -116,11 +119,25 @@ pub fn run(args: &GenArgs) -> anyhow::Result<()> {
         );
         if let Some(p) = &args.preview {
             let path = PathBuf::from(p.to_string_lossy().replace("{object}", object.name()));
-            let (first, _) = data
-                .episodes
-                .first()
-                .context("no episode to render")?;
-            world::render_strip(first, &[0, 13, 26, 39], data.meta.gripper_radius, &path)?;
+            let travel = |e: &dataset::Episode| -> f32 {
+                (1..e.frames())
+                    .map(|t| e.gripper_frame(t)[0].distance(e.gripper_frame(t - 1)[0]))
+                    .sum()
+            };
+            let chosen = match args.preview_episode {
+                Some(k) => data.episodes.get(k).with_context(|| {
+                    format!(
+                        "--preview-episode {k}: only {} episodes",
+                        data.episodes.len()
+                    )
+                })?,
+                None => data
+                    .episodes
+                    .iter()
+                    .max_by(|a, b| travel(&a.0).total_cmp(&travel(&b.0)))
+                    .context("no episode to render")?,
+            };
+            world::render_strip(&chosen.0, &[0, 13, 26, 39], data.meta.gripper_radius, &path)?;
             println!("{object}: preview -> {}", path.display());
         }
     }

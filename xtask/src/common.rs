@@ -80,8 +80,7 @@ pub fn backbone_path(run: &Path) -> PathBuf {
 /// Reads `<run>/backbone.json`.
 pub fn read_backbone(run: &Path) -> anyhow::Result<BackboneFile> {
     let path = backbone_path(run);
-    let text = std::fs::read_to_string(&path).with_context(|| {
-        format!("reading {} (run `cargo xtask fit` first)", path.display())
-    })?;
+    let text = std::fs::read_to_string(&path)
+        .with_context(|| format!("reading {} (run `cargo xtask fit` first)", path.display()))?;
     serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))
 }

@@ -4,9 +4,12 @@
 use clap::{Parser, Subcommand};
 
 mod cmd_demo;
+mod cmd_diagnose;
 mod cmd_eval;
 mod cmd_fit;
+mod cmd_gen;
 mod cmd_import;
+mod cmd_train;
 mod common;
 mod report;
 
@@ -21,10 +24,18 @@ struct Cli {
 enum Command {
     /// Fit, evaluate and plot the backbone on every bundled fixture.
     Demo(cmd_demo::DemoArgs),
+    /// Generate a reference-world dataset with known, switchable effects.
+    Gen(cmd_gen::GenArgs),
+    /// Diagnose the sim-to-real gap of a fitted run: where, which effect, how far it shrinks.
+    Diagnose(cmd_diagnose::DiagnoseArgs),
+    /// Check the diagnosis on reference-world data with withheld effects.
+    DiagnoseBench(cmd_diagnose::DiagnoseBenchArgs),
     /// Fit the backbone's parameters with CMA-ES on a dataset's train split.
     Fit(cmd_fit::FitArgs),
     /// Evaluate a run's model on a split: MDE, Chamfer, EMD per step.
     Eval(cmd_eval::EvalArgs),
+    /// Train the residual network (PGRD) on top of a run's fitted backbone.
+    Train(cmd_train::TrainArgs),
     /// Convert another dataset format into a pgrd dataset.
     Import(cmd_import::ImportArgs),
 }
@@ -32,8 +43,12 @@ enum Command {
 fn main() -> anyhow::Result<()> {
     match Cli::parse().command {
         Command::Demo(args) => cmd_demo::run(&args),
+        Command::Gen(args) => cmd_gen::run(&args),
+        Command::Diagnose(args) => cmd_diagnose::run(&args).map(drop),
+        Command::DiagnoseBench(args) => cmd_diagnose::run_bench(&args).map(drop),
         Command::Fit(args) => cmd_fit::run(&args).map(drop),
         Command::Eval(args) => cmd_eval::run(&args).map(drop),
         Command::Import(args) => cmd_import::run(&args),
+        Command::Train(args) => cmd_train::run(&args),
     }
 }

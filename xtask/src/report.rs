@@ -103,5 +103,6 @@ pub fn plot_curves(
             .draw()?;
         root.present()?;
     }
-    dataset::write_atomic(path, svg.as_bytes()).with_context(|| format!("writing {}", path.display()))
+    dataset::write_atomic(path, svg.as_bytes())
+        .with_context(|| format!("writing {}", path.display()))
 }

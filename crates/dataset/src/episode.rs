@@ -207,7 +207,12 @@ impl Episode {
             owned.push(("closed", Dtype::U8, vec![t, g], c.clone()));
         }
         if let Some(c) = &self.colors {
-            owned.push(("colors", Dtype::F32, vec![n, 3], f32_bytes(c.iter().flatten().copied())));
+            owned.push((
+                "colors",
+                Dtype::F32,
+                vec![n, 3],
+                f32_bytes(c.iter().flatten().copied()),
+            ));
         }
         if let Some(v) = &self.visible {
             owned.push(("visible", Dtype::U8, vec![t, n], v.clone()));
@@ -257,13 +262,7 @@ impl Episode {
                 "'grippers' has {tg} frames but 'positions' has {t}"
             )));
         }
-        let mut ep = Episode::new(
-            t,
-            n,
-            g,
-            vec3s(positions.data()),
-            vec3s(grippers.data()),
-        )?;
+        let mut ep = Episode::new(t, n, g, vec3s(positions.data()), vec3s(grippers.data()))?;
         if let Ok(h) = st.tensor("held") {
             expect(&h, "held", Dtype::I32, &[n])?;
             let held = h
@@ -327,7 +326,10 @@ fn check_finite(name: &str, values: &[Vec3], per_frame: usize) -> Result<()> {
 
 fn check_flags(name: &str, flags: &[u8]) -> Result<()> {
     match flags.iter().position(|f| *f > 1) {
-        Some(k) => Err(invalid(format!("'{name}'[{k}] = {} is not 0 or 1", flags[k]))),
+        Some(k) => Err(invalid(format!(
+            "'{name}'[{k}] = {} is not 0 or 1",
+            flags[k]
+        ))),
         None => Ok(()),
     }
 }

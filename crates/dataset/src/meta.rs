@@ -38,7 +38,9 @@ impl std::str::FromStr for Split {
             "train" => Ok(Split::Train),
             "val" => Ok(Split::Val),
             "test" => Ok(Split::Test),
-            other => Err(format!("unknown split '{other}' (expected train, val or test)")),
+            other => Err(format!(
+                "unknown split '{other}' (expected train, val or test)"
+            )),
         }
     }
 }

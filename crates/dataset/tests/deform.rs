@@ -7,7 +7,8 @@ use dataset::import::deform;
 use dataset::{Dataset, Split, Structure};
 
 fn deform_dir(k: u32) -> Option<PathBuf> {
-    let d = Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("../../../shared/data/deform/DLO{k}"));
+    let d =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("../../../shared/data/deform/DLO{k}"));
     d.is_dir().then_some(d)
 }
 
@@ -30,7 +31,10 @@ fn reads_a_real_recording() {
     assert!((rec.positions[0].x - 0.652791).abs() < 1e-6);
     let ep = rec.to_episode().unwrap();
     assert_eq!(ep.grippers(), 4);
-    assert_eq!(ep.held().unwrap(), &[0, 1, -1, -1, -1, -1, -1, -1, -1, -1, -1, 2, 3]);
+    assert_eq!(
+        ep.held().unwrap(),
+        &[0, 1, -1, -1, -1, -1, -1, -1, -1, -1, -1, 2, 3]
+    );
     for t in [0, 250, 499] {
         assert_eq!(ep.gripper_frame(t)[3], ep.frame(t)[12]);
     }
@@ -55,7 +59,9 @@ fn imports_a_whole_cable() {
     assert_eq!(data.split_indices(Split::Train).len(), 56);
     assert_eq!(data.split_indices(Split::Val).len(), 14);
     assert_eq!(report.markers, 12);
-    let ep = data.load_episode(data.split_indices(Split::Val)[0]).unwrap();
+    let ep = data
+        .load_episode(data.split_indices(Split::Val)[0])
+        .unwrap();
     assert_eq!((ep.frames(), ep.particles()), (500, 12));
     assert!(out.join("import.json").is_file());
     std::fs::remove_dir_all(&out).ok();
@@ -84,20 +90,38 @@ fn malformed_pickles_give_clear_errors() {
     };
     let good = py_list(4, 6);
     std::fs::write(dir.join("good.pkl"), &good).unwrap();
-    assert_eq!(deform::read_recording(&dir.join("good.pkl")).unwrap().markers, 6);
+    assert_eq!(
+        deform::read_recording(&dir.join("good.pkl"))
+            .unwrap()
+            .markers,
+        6
+    );
 
     let cases: [(&str, Vec<u8>, &str); 4] = [
-        ("truncated.pkl", good[..good.len() - 7].to_vec(), "truncated"),
+        (
+            "truncated.pkl",
+            good[..good.len() - 7].to_vec(),
+            "truncated",
+        ),
         ("short.pkl", py_list(2, 6), "at least 3 frames"),
         ("few_markers.pkl", py_list(4, 3), ">= 5"),
-        ("not_pickle.pkl", b"hello".to_vec(), "unsupported pickle opcode"),
+        (
+            "not_pickle.pkl",
+            b"hello".to_vec(),
+            "unsupported pickle opcode",
+        ),
     ];
     for (name, bytes, want) in cases {
         let path = dir.join(name);
         std::fs::write(&path, bytes).unwrap();
         let msg = deform::read_recording(&path).unwrap_err().to_string();
-        assert!(msg.contains(name) && msg.contains(want), "{msg} should name {name} and say {want}");
+        assert!(
+            msg.contains(name) && msg.contains(want),
+            "{msg} should name {name} and say {want}"
+        );
     }
-    let missing = deform::import(&dir, &dir.join("out")).unwrap_err().to_string();
+    let missing = deform::import(&dir, &dir.join("out"))
+        .unwrap_err()
+        .to_string();
     assert!(missing.contains("train"), "{missing}");
 }

@@ -46,10 +46,14 @@ proptest! {
 #[test]
 fn dataset_round_trip_and_splits() {
     let dir = tmpdir("roundtrip");
-    let mut w = DatasetWriter::create(&dir, DatasetMeta::new("rope", 10.0, Manipulation::Grasp))
-        .unwrap();
-    for (k, split) in [Split::Train, Split::Val, Split::Train].into_iter().enumerate() {
-        w.add_episode(&small_episode(3, 4, 1, k as f32), split).unwrap();
+    let mut w =
+        DatasetWriter::create(&dir, DatasetMeta::new("rope", 10.0, Manipulation::Grasp)).unwrap();
+    for (k, split) in [Split::Train, Split::Val, Split::Train]
+        .into_iter()
+        .enumerate()
+    {
+        w.add_episode(&small_episode(3, 4, 1, k as f32), split)
+            .unwrap();
     }
     w.finish().unwrap();
     let d = Dataset::open(&dir).unwrap();
@@ -68,10 +72,18 @@ fn dataset_round_trip_and_splits() {
 
 #[test]
 fn default_held_uses_gripper_radius_at_frame_zero() {
-    let pos = vec![Vec3::ZERO, Vec3::new(0.03, 0.0, 0.0), Vec3::new(0.5, 0.0, 0.0), Vec3::new(0.97, 0.0, 0.0)];
+    let pos = vec![
+        Vec3::ZERO,
+        Vec3::new(0.03, 0.0, 0.0),
+        Vec3::new(0.5, 0.0, 0.0),
+        Vec3::new(0.97, 0.0, 0.0),
+    ];
     let grip = vec![Vec3::ZERO, Vec3::new(1.0, 0.0, 0.0)];
     let ep = Episode::new(1, 4, 2, pos, grip).unwrap();
-    assert_eq!(ep.held_or_default(Manipulation::Grasp, 0.04), vec![0, 0, -1, 1]);
+    assert_eq!(
+        ep.held_or_default(Manipulation::Grasp, 0.04),
+        vec![0, 0, -1, 1]
+    );
     assert_eq!(ep.held_or_default(Manipulation::Push, 0.04), vec![-1; 4]);
 }
 
@@ -84,7 +96,10 @@ fn in_memory_validation() {
     let nan = Episode::new(2, 3, 1, pos, vec![Vec3::ZERO; 2]);
     assert!(message(nan.unwrap_err()).contains("non-finite value at frame 1, index 1"));
     let ep = small_episode(2, 3, 1, 0.0);
-    assert!(ep.clone().with_held(vec![0, 1, -1]).is_err(), "gripper 1 does not exist");
+    assert!(
+        ep.clone().with_held(vec![0, 1, -1]).is_err(),
+        "gripper 1 does not exist"
+    );
     assert!(ep.clone().with_closed(vec![0, 2]).is_err());
     assert!(ep.clone().with_colors(vec![[0.0, 0.0, 1.5]; 3]).is_err());
     assert!(Episode::new(0, 3, 1, vec![], vec![]).is_err());
@@ -98,10 +113,22 @@ fn write_index(dir: &std::path::Path, json: &str) {
 fn malformed_index_errors_name_the_file() {
     let dir = tmpdir("badindex");
     let cases = [
-        (r#"{"format": "pgrd-dataset/9", "object": "x", "fps": 10, "gravity": [0,0,-9.81], "ground_z": 0, "manipulation": "grasp", "gripper_radius": 0.04, "episodes": []}"#, "unsupported format 'pgrd-dataset/9'"),
-        (r#"{"format": "pgrd-dataset/1", "object": "x", "fps": 0, "gravity": [0,0,-9.81], "ground_z": 0, "manipulation": "grasp", "gripper_radius": 0.04, "episodes": []}"#, "fps must be a positive number"),
-        (r#"{"format": "pgrd-dataset/1", "object": "x", "fps": 10, "gravity": [0,0,-9.81], "ground_z": 0, "manipulation": "hold", "gripper_radius": 0.04, "episodes": []}"#, "unknown variant `hold`"),
-        (r#"{"format": "pgrd-dataset/1", "object": "x", "fps": 10, "gravity": [0,0,-9.81], "ground_z": null, "manipulation": "push", "gripper_radius": 0.04, "episodes": [{"file": "../secret", "split": "train"}]}"#, "plain file name"),
+        (
+            r#"{"format": "pgrd-dataset/9", "object": "x", "fps": 10, "gravity": [0,0,-9.81], "ground_z": 0, "manipulation": "grasp", "gripper_radius": 0.04, "episodes": []}"#,
+            "unsupported format 'pgrd-dataset/9'",
+        ),
+        (
+            r#"{"format": "pgrd-dataset/1", "object": "x", "fps": 0, "gravity": [0,0,-9.81], "ground_z": 0, "manipulation": "grasp", "gripper_radius": 0.04, "episodes": []}"#,
+            "fps must be a positive number",
+        ),
+        (
+            r#"{"format": "pgrd-dataset/1", "object": "x", "fps": 10, "gravity": [0,0,-9.81], "ground_z": 0, "manipulation": "hold", "gripper_radius": 0.04, "episodes": []}"#,
+            "unknown variant `hold`",
+        ),
+        (
+            r#"{"format": "pgrd-dataset/1", "object": "x", "fps": 10, "gravity": [0,0,-9.81], "ground_z": null, "manipulation": "push", "gripper_radius": 0.04, "episodes": [{"file": "../secret", "split": "train"}]}"#,
+            "plain file name",
+        ),
         ("{not json", "not a valid dataset index"),
     ];
     for (json, want) in cases {
@@ -122,28 +149,50 @@ fn malformed_episode_files_error_with_their_path() {
     // Truncated file.
     std::fs::write(&path, &good[..good.len() / 2]).unwrap();
     let msg = message(Episode::read(&path).unwrap_err());
-    assert!(msg.contains("ep.safetensors") && msg.contains("not a safetensors file"), "{msg}");
+    assert!(
+        msg.contains("ep.safetensors") && msg.contains("not a safetensors file"),
+        "{msg}"
+    );
     // Wrong dtype and shape for positions.
     let data = vec![0u8; 3 * 4 * 3 * 8];
-    let views = vec![
-        ("positions", safetensors::tensor::TensorView::new(safetensors::Dtype::F64, vec![3, 4, 3], &data).unwrap()),
-    ];
+    let views = vec![(
+        "positions",
+        safetensors::tensor::TensorView::new(safetensors::Dtype::F64, vec![3, 4, 3], &data)
+            .unwrap(),
+    )];
     std::fs::write(&path, safetensors::serialize(views, None).unwrap()).unwrap();
     let msg = message(Episode::read(&path).unwrap_err());
     assert!(msg.contains("'positions' must be F32"), "{msg}");
     // Missing grippers.
     let pos = vec![0u8; 3 * 4 * 3 * 4];
-    let views = vec![("positions", safetensors::tensor::TensorView::new(safetensors::Dtype::F32, vec![3, 4, 3], &pos).unwrap())];
+    let views = vec![(
+        "positions",
+        safetensors::tensor::TensorView::new(safetensors::Dtype::F32, vec![3, 4, 3], &pos).unwrap(),
+    )];
     std::fs::write(&path, safetensors::serialize(views, None).unwrap()).unwrap();
     let msg = message(Episode::read(&path).unwrap_err());
     assert!(msg.contains("missing tensor 'grippers'"), "{msg}");
     // held pointing at a gripper that does not exist.
-    let held: Vec<u8> = [0i32, 5, -1, -1].iter().flat_map(|v| v.to_le_bytes()).collect();
+    let held: Vec<u8> = [0i32, 5, -1, -1]
+        .iter()
+        .flat_map(|v| v.to_le_bytes())
+        .collect();
     let grip = vec![0u8; 3 * 2 * 3 * 4];
     let views = vec![
-        ("positions", safetensors::tensor::TensorView::new(safetensors::Dtype::F32, vec![3, 4, 3], &pos).unwrap()),
-        ("grippers", safetensors::tensor::TensorView::new(safetensors::Dtype::F32, vec![3, 2, 3], &grip).unwrap()),
-        ("held", safetensors::tensor::TensorView::new(safetensors::Dtype::I32, vec![4], &held).unwrap()),
+        (
+            "positions",
+            safetensors::tensor::TensorView::new(safetensors::Dtype::F32, vec![3, 4, 3], &pos)
+                .unwrap(),
+        ),
+        (
+            "grippers",
+            safetensors::tensor::TensorView::new(safetensors::Dtype::F32, vec![3, 2, 3], &grip)
+                .unwrap(),
+        ),
+        (
+            "held",
+            safetensors::tensor::TensorView::new(safetensors::Dtype::I32, vec![4], &held).unwrap(),
+        ),
     ];
     std::fs::write(&path, safetensors::serialize(views, None).unwrap()).unwrap();
     let msg = message(Episode::read(&path).unwrap_err());

@@ -28,9 +28,21 @@ impl BackboneFamily {
     pub fn new(bounds: ParamBounds) -> Result<Self, cmaes::Error> {
         let f = |v: f32| f64::from(v);
         let parameters = Parameters::new(vec![
-            Parameter::log("stiffness_n_per_m", f(bounds.stiffness[0]), f(bounds.stiffness[1])),
-            Parameter::log("damping_ns_per_m", f(bounds.damping[0]), f(bounds.damping[1])),
-            Parameter::linear("threshold_m", f(bounds.threshold[0]), f(bounds.threshold[1])),
+            Parameter::log(
+                "stiffness_n_per_m",
+                f(bounds.stiffness[0]),
+                f(bounds.stiffness[1]),
+            ),
+            Parameter::log(
+                "damping_ns_per_m",
+                f(bounds.damping[0]),
+                f(bounds.damping[1]),
+            ),
+            Parameter::linear(
+                "threshold_m",
+                f(bounds.threshold[0]),
+                f(bounds.threshold[1]),
+            ),
             Parameter::linear(
                 "max_springs",
                 f64::from(bounds.max_springs[0]),

@@ -154,9 +154,13 @@ pub fn fit<F: Family>(
     let (mut es, mut outcome) = match checkpoint.filter(|p| p.is_file()) {
         Some(path) => {
             let text = std::fs::read_to_string(path).map_err(|e| checkpoint_error(path, e))?;
-            let ck: Checkpoint = serde_json::from_str(&text).map_err(|e| checkpoint_error(path, e))?;
+            let ck: Checkpoint =
+                serde_json::from_str(&text).map_err(|e| checkpoint_error(path, e))?;
             // Asking for more generations extends a run; anything else must match.
-            let same = FitConfig { generations: config.generations, ..ck.config.clone() };
+            let same = FitConfig {
+                generations: config.generations,
+                ..ck.config.clone()
+            };
             if ck.family != family.name() || same != *config || ck.scenes != scenes.len() {
                 return Err(checkpoint_error(
                     path,
@@ -173,7 +177,9 @@ pub fn fit<F: Family>(
     while outcome.history.len() < config.generations {
         let t0 = Instant::now();
         let index = outcome.history.len();
-        let mut rng = ChaCha8Rng::seed_from_u64(config.seed ^ (index as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15));
+        let mut rng = ChaCha8Rng::seed_from_u64(
+            config.seed ^ (index as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15),
+        );
         let mut picked = sample(&mut rng, scenes.len(), samples).into_vec();
         picked.sort_unstable();
         let candidates = es.ask();
@@ -197,10 +203,10 @@ pub fn fit<F: Family>(
             .filter(|l| l.contains(&PENALTY))
             .count();
         es.tell(&candidates, &fitness)?;
-        let (best_c, best_loss) = fitness
-            .iter()
-            .enumerate()
-            .fold((0, f64::INFINITY), |b, (i, f)| if *f < b.1 { (i, *f) } else { b });
+        let (best_c, best_loss) = fitness.iter().enumerate().fold(
+            (0, f64::INFINITY),
+            |b, (i, f)| if *f < b.1 { (i, *f) } else { b },
+        );
         if best_loss < outcome.best_loss {
             outcome.best_loss = best_loss;
             outcome.best = reals[best_c].clone();

@@ -12,7 +12,9 @@ use springs::{Actions, Backbone, SimConfig, SpringParams, State};
 fn synthetic_scenes(truth: &SpringParams, count: usize) -> (DatasetMeta, Vec<Scene>) {
     let mut meta = DatasetMeta::new("rope", 10.0, Manipulation::Grasp);
     meta.gravity = [0.0, 0.0, -9.8];
-    let rest: Vec<Vec3> = (0..24).map(|i| Vec3::new(0.02 * i as f32, 0.0, 0.5)).collect();
+    let rest: Vec<Vec3> = (0..24)
+        .map(|i| Vec3::new(0.02 * i as f32, 0.0, 0.5))
+        .collect();
     let mut held = vec![-1; rest.len()];
     held[0] = 0;
     let bb = Backbone::new(&rest, &held, *truth, SimConfig::default()).unwrap();
@@ -22,7 +24,11 @@ fn synthetic_scenes(truth: &SpringParams, count: usize) -> (DatasetMeta, Vec<Sce
             let grip: Vec<Vec<Vec3>> = (0..frames)
                 .map(|t| {
                     let s = t as f32 * 0.1;
-                    vec![Vec3::new(0.1 * (s * (1.0 + k as f32 * 0.3)).sin(), 0.05 * s, 0.5)]
+                    vec![Vec3::new(
+                        0.1 * (s * (1.0 + k as f32 * 0.3)).sin(),
+                        0.05 * s,
+                        0.5,
+                    )]
                 })
                 .collect();
             let actions = Actions::new(grip.clone(), vec![vec![true]; frames]).unwrap();
@@ -53,7 +59,11 @@ fn truth() -> SpringParams {
 fn fit_reduces_loss_towards_the_truth() {
     let (_, scenes) = synthetic_scenes(&truth(), 4);
     let family = BackboneFamily::new(springs::REFERENCE_BOUNDS).unwrap();
-    let start: f64 = scenes.iter().map(|s| scene_loss(&family, &family.x0(), s)).sum::<f64>() / 4.0;
+    let start: f64 = scenes
+        .iter()
+        .map(|s| scene_loss(&family, &family.x0(), s))
+        .sum::<f64>()
+        / 4.0;
     let config = FitConfig {
         population: 8,
         generations: 8,
@@ -66,7 +76,11 @@ fn fit_reduces_loss_towards_the_truth() {
     assert_eq!(seen, 8);
     assert_eq!(out.history.len(), 8);
     assert_eq!(out.evaluations, 64);
-    let end: f64 = scenes.iter().map(|s| scene_loss(&family, &out.best, s)).sum::<f64>() / 4.0;
+    let end: f64 = scenes
+        .iter()
+        .map(|s| scene_loss(&family, &out.best, s))
+        .sum::<f64>()
+        / 4.0;
     assert!(end < 0.3 * start, "loss {start:.3e} -> {end:.3e} m^2");
 }
 

@@ -22,7 +22,7 @@ impl Default for SceneConfig {
         SceneConfig {
             chain_hidden_per_gap: 4,
             fill_volume: true,
-            substep: Substep::Auto { safety: 0.9 },
+            substep: Substep::AUTO,
         }
     }
 }
@@ -84,7 +84,10 @@ impl Scene {
             Structure::Volume if config.fill_volume => {
                 let spacing = median_spacing(&x);
                 let interior = springs::fill_interior(&x, spacing)?;
-                let iv = interior.iter().map(|p| mean_velocity_near(&x, &v, *p, 4)).collect::<Vec<_>>();
+                let iv = interior
+                    .iter()
+                    .map(|p| mean_velocity_near(&x, &v, *p, 4))
+                    .collect::<Vec<_>>();
                 held.extend(std::iter::repeat_n(-1, interior.len()));
                 x.extend(interior);
                 v.extend(iv);
@@ -92,15 +95,29 @@ impl Scene {
             _ => {}
         }
         let frames = window.start..=last;
-        let positions = frames.clone().map(|t| episode.gripper_frame(t).to_vec()).collect();
+        let positions = frames
+            .clone()
+            .map(|t| episode.gripper_frame(t).to_vec())
+            .collect();
         let closed = frames
-            .map(|t| (0..episode.grippers()).map(|g| episode.closed(t, g)).collect())
+            .map(|t| {
+                (0..episode.grippers())
+                    .map(|g| episode.closed(t, g))
+                    .collect()
+            })
             .collect();
         let actions = Actions::new(positions, closed)?;
         let truth_frames = window.start + 1..=last;
-        let truth = truth_frames.clone().map(|t| episode.frame(t).to_vec()).collect();
+        let truth = truth_frames
+            .clone()
+            .map(|t| episode.frame(t).to_vec())
+            .collect();
         let visible = truth_frames
-            .map(|t| (0..episode.particles()).map(|i| episode.visible(t, i)).collect())
+            .map(|t| {
+                (0..episode.particles())
+                    .map(|i| episode.visible(t, i))
+                    .collect()
+            })
             .collect();
         let sim = SimConfig {
             step_dt: meta.step_dt(),
@@ -144,7 +161,13 @@ impl Scene {
         config: &SimConfig,
         options: BackboneOptions,
     ) -> Result<Backbone, SceneError> {
-        Ok(Backbone::with_options(&self.init.x, &self.held, *params, *config, options)?)
+        Ok(Backbone::with_options(
+            &self.init.x,
+            &self.held,
+            *params,
+            *config,
+            options,
+        )?)
     }
 
     /// Rolls the backbone out over the window; returns the tracked particles' positions after
@@ -203,7 +226,11 @@ fn median_spacing(x: &[Vec3]) -> f32 {
 
 /// Mean velocity of the `k` tracked particles nearest to `p`.
 fn mean_velocity_near(x: &[Vec3], v: &[Vec3], p: Vec3, k: usize) -> Vec3 {
-    let mut d: Vec<(f32, usize)> = x.iter().enumerate().map(|(i, q)| (q.distance_squared(p), i)).collect();
+    let mut d: Vec<(f32, usize)> = x
+        .iter()
+        .enumerate()
+        .map(|(i, q)| (q.distance_squared(p), i))
+        .collect();
     let k = k.min(d.len());
     if k == 0 {
         return Vec3::ZERO;

@@ -42,7 +42,10 @@ fn seen(scene: &Scene, step: usize, pred: &[Vec3]) -> (Vec<[f32; 3]>, Vec<[f32; 
     let keep = |i: &usize| all || vis[*i];
     let idx: Vec<usize> = (0..scene.tracked).filter(keep).collect();
     let p = idx.iter().map(|i| pred[*i].to_array()).collect();
-    let g = idx.iter().map(|i| scene.truth[step][*i].to_array()).collect();
+    let g = idx
+        .iter()
+        .map(|i| scene.truth[step][*i].to_array())
+        .collect();
     (p, g)
 }
 
@@ -63,7 +66,11 @@ pub fn score_steps(
                 mde: metrics::mde(&p, &g)?,
                 chamfer_pred_to_gt: c.pred_to_gt,
                 chamfer_gt_to_pred: c.gt_to_pred,
-                emd: if with_emd { solver.emd(&p, &g)? } else { f64::NAN },
+                emd: if with_emd {
+                    solver.emd(&p, &g)?
+                } else {
+                    f64::NAN
+                },
             })
         })
         .collect()

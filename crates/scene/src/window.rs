@@ -56,9 +56,21 @@ mod tests {
 
     #[test]
     fn windows() {
-        assert_eq!(Protocol::Paper.window(40).unwrap(), Window { start: 2, steps: 37 });
+        assert_eq!(
+            Protocol::Paper.window(40).unwrap(),
+            Window {
+                start: 2,
+                steps: 37
+            }
+        );
         assert!(Protocol::Paper.window(39).is_err());
-        assert_eq!(Protocol::Deform.window(500).unwrap(), Window { start: 1, steps: 498 });
+        assert_eq!(
+            Protocol::Deform.window(500).unwrap(),
+            Window {
+                start: 1,
+                steps: 498
+            }
+        );
         assert!(Protocol::Deform.window(2).is_err());
     }
 }

@@ -48,7 +48,10 @@ fn dlo1_eval_episode_end_to_end() {
     let l1 = scene::deform_l1(&scene, &pred).unwrap();
     let errors = scene::score_steps(&scene, &pred, true).unwrap();
     let mde_mean = errors.iter().map(|e| e.mde).sum::<f64>() / errors.len() as f64;
-    eprintln!("DLO1 episode {index}: deform_l1 {l1:.4} m, mean MDE {:.2} cm", 100.0 * mde_mean);
+    eprintln!(
+        "DLO1 episode {index}: deform_l1 {l1:.4} m, mean MDE {:.2} cm",
+        100.0 * mde_mean
+    );
     // A cable whose ends are driven cannot drift far: errors stay well below its 1 m length.
     assert!(l1 > 0.0 && l1 < 0.05, "deform_l1 {l1}");
     assert!(mde_mean < 0.1, "mean MDE {mde_mean} m");

@@ -53,7 +53,11 @@ pub fn read_recording(path: &Path) -> Result<Recording> {
     for (t, frame) in frames.iter().enumerate() {
         let coords = match frame {
             Value::List(c) if c.len() == 3 => c,
-            _ => return Err(bad(format!("frame {t} is not a list of 3 coordinate lists"))),
+            _ => {
+                return Err(bad(format!(
+                    "frame {t} is not a list of 3 coordinate lists"
+                )));
+            }
         };
         let mut axes = [&[][..]; 3];
         for (a, axis) in coords.iter().enumerate() {
@@ -79,12 +83,13 @@ pub fn read_recording(path: &Path) -> Result<Recording> {
         }
         for i in 0..n {
             let mut p = [0f32; 3];
-            for a in 0..3 {
-                let v = axes[a][i]
-                    .as_f64()
-                    .filter(|v| v.is_finite())
-                    .ok_or_else(|| bad(format!("frame {t}, axis {a}, marker {i} is not a finite number")))?;
-                p[a] = v as f32;
+            for (a, (out, axis)) in p.iter_mut().zip(axes).enumerate() {
+                let v = axis[i].as_f64().filter(|v| v.is_finite()).ok_or_else(|| {
+                    bad(format!(
+                        "frame {t}, axis {a}, marker {i} is not a finite number"
+                    ))
+                })?;
+                *out = v as f32;
             }
             positions.push(Vec3::from_array(p));
         }
@@ -187,7 +192,9 @@ pub fn import(dir: &Path, out: &Path) -> Result<ImportReport> {
         report.markers = rec.markers;
         let index = writer.add_episode(&rec.to_episode()?, split)?;
         let file = format!("ep_{index:04}.safetensors");
-        report.episodes.push((file, split, path.display().to_string()));
+        report
+            .episodes
+            .push((file, split, path.display().to_string()));
     }
     writer.finish()?;
     let json = serde_json::to_string_pretty(&report)

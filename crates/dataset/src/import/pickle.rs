@@ -34,9 +34,10 @@ pub fn parse(bytes: &[u8]) -> Result<Value, String> {
     let mut pos = 0usize;
     let mut stack: Vec<Item> = Vec::new();
     let take = |pos: &mut usize, n: usize| -> Result<&[u8], String> {
-        let end = pos.checked_add(n).filter(|e| *e <= bytes.len()).ok_or_else(|| {
-            format!("truncated pickle: needed {n} more bytes at offset {}", *pos)
-        })?;
+        let end = pos
+            .checked_add(n)
+            .filter(|e| *e <= bytes.len())
+            .ok_or_else(|| format!("truncated pickle: needed {n} more bytes at offset {}", *pos))?;
         let s = &bytes[*pos..end];
         *pos = end;
         Ok(s)
@@ -67,14 +68,16 @@ pub fn parse(bytes: &[u8]) -> Result<Value, String> {
             }
             b'M' => {
                 let b = take(&mut pos, 2)?;
-                stack.push(Item::Value(Value::Int(u16::from_le_bytes([b[0], b[1]]) as i64)));
+                stack.push(Item::Value(Value::Int(
+                    u16::from_le_bytes([b[0], b[1]]) as i64
+                )));
             }
             b'J' => {
                 let b = take(&mut pos, 4)?;
                 let v = i32::from_le_bytes([b[0], b[1], b[2], b[3]]);
                 stack.push(Item::Value(Value::Int(v as i64)));
             }
-            0x94 => {}                    // MEMOIZE: we never read memo entries back
+            0x94 => {}                        // MEMOIZE: we never read memo entries back
             b'q' => drop(take(&mut pos, 1)?), // BINPUT
             b'r' => drop(take(&mut pos, 4)?), // LONG_BINPUT
             b'a' => {
@@ -115,14 +118,18 @@ pub fn parse(bytes: &[u8]) -> Result<Value, String> {
 fn pop_value(stack: &mut Vec<Item>, at: usize) -> Result<Value, String> {
     match stack.pop() {
         Some(Item::Value(v)) => Ok(v),
-        _ => Err(format!("malformed pickle: expected a value on the stack at offset {at}")),
+        _ => Err(format!(
+            "malformed pickle: expected a value on the stack at offset {at}"
+        )),
     }
 }
 
 fn list_on_top(stack: &mut [Item], at: usize) -> Result<&mut Vec<Value>, String> {
     match stack.last_mut() {
         Some(Item::Value(Value::List(l))) => Ok(l),
-        _ => Err(format!("malformed pickle: append to a non-list at offset {at}")),
+        _ => Err(format!(
+            "malformed pickle: append to a non-list at offset {at}"
+        )),
     }
 }
 

@@ -1,0 +1,342 @@
+//! The library of candidate effects, their parameters and ranges, and the model family that
+//! refits one of them together with the backbone's continuous parameters.
+
+use std::sync::Arc;
+
+use cmaes::{Parameter, Parameters};
+use fit::Family;
+use glam::Vec3;
+use serde::{Deserialize, Serialize};
+use springs::{BackboneOptions, Effect, SpringParams};
+
+use crate::GapError;
+use crate::forces::{
+    ActuationLag, BendingSprings, ExternalField, MassGradient, PlasticCreep, QuadraticDrag,
+    SlippingGrasp, StickSlipFriction, StiffnessGradient, StrainStiffening,
+};
+
+/// A candidate unmodelled effect (the nine library effects), or the generic probe.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Candidate {
+    /// Quadratic air drag.
+    Drag,
+    /// Stiffness varying along the principal axis.
+    StiffnessHeterogeneity,
+    /// Strain stiffening in tension, softening in compression.
+    NonlinearElasticity,
+    /// Bending springs to the second ring of neighbours.
+    Bending,
+    /// Stick-slip ground friction.
+    Friction,
+    /// Plastic creep of rest lengths above a yield strain.
+    Plasticity,
+    /// Gripper motion delayed by a fractional number of steps.
+    ActuationDelay,
+    /// Compliant grasp that slips above a force.
+    GraspSlip,
+    /// Mass varying along the principal axis.
+    MassDistribution,
+    /// Not in the library: a generic external acceleration field (the `unknown` probe).
+    ExternalField,
+}
+
+impl Candidate {
+    /// The nine named library effects.
+    pub const LIBRARY: [Candidate; 9] = [
+        Candidate::Drag,
+        Candidate::StiffnessHeterogeneity,
+        Candidate::NonlinearElasticity,
+        Candidate::Bending,
+        Candidate::Friction,
+        Candidate::Plasticity,
+        Candidate::ActuationDelay,
+        Candidate::GraspSlip,
+        Candidate::MassDistribution,
+    ];
+
+    /// The effect's name, as used by the reference world and in reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            Candidate::Drag => "drag",
+            Candidate::StiffnessHeterogeneity => "stiffness-heterogeneity",
+            Candidate::NonlinearElasticity => "nonlinear-elasticity",
+            Candidate::Bending => "bending",
+            Candidate::Friction => "friction",
+            Candidate::Plasticity => "plasticity",
+            Candidate::ActuationDelay => "actuation-delay",
+            Candidate::GraspSlip => "grasp-slip",
+            Candidate::MassDistribution => "mass-distribution",
+            Candidate::ExternalField => "external-field",
+        }
+    }
+
+    /// Parses a name from [`Candidate::name`].
+    pub fn parse(name: &str) -> Result<Candidate, GapError> {
+        Candidate::LIBRARY
+            .into_iter()
+            .chain([Candidate::ExternalField])
+            .find(|c| c.name() == name)
+            .ok_or_else(|| GapError::Config(format!("unknown candidate effect '{name}'")))
+    }
+
+    /// The effect's searched parameters (name, range, scale).
+    pub fn parameters(self) -> Vec<Parameter> {
+        match self {
+            Candidate::Drag => vec![Parameter::log("drag_kg_per_m", 1e-3, 10.0)],
+            Candidate::StiffnessHeterogeneity => {
+                vec![Parameter::linear("log_stiffness_slope", -2.0, 2.0)]
+            }
+            Candidate::NonlinearElasticity => vec![
+                Parameter::log("stiffening_beta", 1.0, 1000.0),
+                Parameter::linear("compression_softening", 0.0, 0.9),
+            ],
+            Candidate::Bending => vec![Parameter::log("bending_relative_stiffness", 1e-3, 1.0)],
+            Candidate::Friction => vec![Parameter::linear("static_excess_mu", 0.0, 2.0)],
+            Candidate::Plasticity => vec![
+                Parameter::linear("yield_strain", 0.0, 0.1),
+                Parameter::log("creep_rate_per_s", 0.1, 100.0),
+            ],
+            Candidate::ActuationDelay => vec![Parameter::linear("delay_steps", 0.0, 3.0)],
+            Candidate::GraspSlip => vec![
+                Parameter::log("grasp_stiffness_n_per_m", 10.0, 1e5),
+                Parameter::log("slip_force_n", 0.1, 1000.0),
+            ],
+            Candidate::MassDistribution => vec![Parameter::linear("log_mass_slope", -2.0, 2.0)],
+            Candidate::ExternalField => vec![
+                Parameter::linear("field_x_m_per_s2", -3.0, 3.0),
+                Parameter::linear("field_y_m_per_s2", -3.0, 3.0),
+                Parameter::linear("field_z_m_per_s2", -3.0, 3.0),
+                Parameter::linear("field_gradient_per_s2", -20.0, 20.0),
+            ],
+        }
+    }
+
+    /// Where the refit starts: a moderate strength, also used for the residual signature.
+    pub fn start(self) -> Vec<f64> {
+        match self {
+            Candidate::Drag => vec![0.3],
+            Candidate::StiffnessHeterogeneity => vec![0.5],
+            Candidate::NonlinearElasticity => vec![30.0, 0.3],
+            Candidate::Bending => vec![0.05],
+            Candidate::Friction => vec![0.5],
+            Candidate::Plasticity => vec![0.02, 5.0],
+            Candidate::ActuationDelay => vec![1.0],
+            Candidate::GraspSlip => vec![1000.0, 20.0],
+            Candidate::MassDistribution => vec![0.5],
+            Candidate::ExternalField => vec![0.5, 0.5, 0.5, -2.0],
+        }
+    }
+
+    /// Parameter values at which the effect vanishes (grasp slip: a very stiff grasp that
+    /// never slips, which only approaches the kinematic grasp).
+    pub fn neutral(self) -> Vec<f64> {
+        match self {
+            Candidate::Drag | Candidate::Bending => vec![0.0],
+            Candidate::StiffnessHeterogeneity | Candidate::MassDistribution => vec![0.0],
+            Candidate::NonlinearElasticity => vec![0.0, 0.0],
+            Candidate::Friction | Candidate::ActuationDelay => vec![0.0],
+            Candidate::Plasticity => vec![0.02, 0.0],
+            Candidate::GraspSlip => vec![1e6, 1e9],
+            Candidate::ExternalField => vec![0.0; 4],
+        }
+    }
+
+    /// The effect for parameter values `v` (in the order of [`Candidate::parameters`]).
+    pub fn effect(self, v: &[f64], frame: &MaterialFrame) -> Box<dyn Effect> {
+        let f = |i: usize| v.get(i).copied().unwrap_or(0.0) as f32;
+        match self {
+            Candidate::Drag => Box::new(QuadraticDrag { coefficient: f(0) }),
+            Candidate::StiffnessHeterogeneity => Box::new(StiffnessGradient {
+                slope: f(0),
+                material: frame.coordinate.clone(),
+            }),
+            Candidate::NonlinearElasticity => Box::new(StrainStiffening {
+                beta: f(0),
+                gamma: f(1),
+            }),
+            Candidate::Bending => Box::new(BendingSprings::new(f(0))),
+            Candidate::Friction => Box::new(StickSlipFriction {
+                static_excess: f(0),
+            }),
+            Candidate::Plasticity => Box::new(PlasticCreep {
+                yield_strain: f(0),
+                rate: f(1),
+            }),
+            Candidate::ActuationDelay => Box::new(ActuationLag { steps: f(0) }),
+            Candidate::GraspSlip => Box::new(SlippingGrasp {
+                stiffness: f(0),
+                max_force: f(1),
+            }),
+            Candidate::MassDistribution => Box::new(MassGradient {
+                slope: f(0),
+                material: frame.coordinate.clone(),
+            }),
+            Candidate::ExternalField => Box::new(ExternalField {
+                uniform: Vec3::new(f(0), f(1), f(2)),
+                gradient: f(3),
+                centre: frame.centre,
+            }),
+        }
+    }
+}
+
+/// Where each tracked particle lies on the object, shared by every episode of a dataset (the
+/// tracked particles are the same material points in every episode).
+#[derive(Clone, Debug, PartialEq)]
+pub struct MaterialFrame {
+    /// Coordinate along the principal axis of the reference shape, scaled to [−1, 1].
+    pub coordinate: Arc<Vec<f32>>,
+    /// Mean tracked position over the training data, m (the external field's expansion point).
+    pub centre: Vec3,
+}
+
+impl MaterialFrame {
+    /// From a reference shape (tracked positions, m) and the training data's mean position.
+    /// The axis is oriented so that the coordinate grows with the particle index, which keeps
+    /// its sign the same across datasets of one object.
+    pub fn new(reference: &[Vec3], centre: Vec3) -> Result<Self, GapError> {
+        if reference.len() < 2 || !reference.iter().all(|p| p.is_finite()) {
+            return Err(GapError::Config(
+                "reference shape needs >= 2 finite points".into(),
+            ));
+        }
+        let axis = principal_axis(reference);
+        let mean = reference.iter().copied().sum::<Vec3>() / reference.len() as f32;
+        let mut u: Vec<f32> = reference.iter().map(|p| (*p - mean).dot(axis)).collect();
+        let n = u.len() as f32;
+        let mean_i = (n - 1.0) / 2.0;
+        let cov: f32 = u
+            .iter()
+            .enumerate()
+            .map(|(i, v)| (i as f32 - mean_i) * v)
+            .sum();
+        let sign = if cov < 0.0 { -1.0 } else { 1.0 };
+        let scale = u.iter().fold(0.0f32, |m, v| m.max(v.abs())).max(1e-9);
+        for v in &mut u {
+            *v *= sign / scale;
+        }
+        Ok(MaterialFrame {
+            coordinate: Arc::new(u),
+            centre,
+        })
+    }
+}
+
+/// Unit principal axis of a point set (power iteration on the covariance, deterministic start).
+pub fn principal_axis(points: &[Vec3]) -> Vec3 {
+    let n = points.len().max(1) as f32;
+    let mean = points.iter().copied().sum::<Vec3>() / n;
+    let mut c = glam::Mat3::ZERO;
+    for p in points {
+        let d = *p - mean;
+        c += glam::Mat3::from_cols(d * d.x, d * d.y, d * d.z);
+    }
+    let mut v = Vec3::new(1.0, 0.7, 0.3).normalize();
+    for _ in 0..100 {
+        let w = c * v;
+        if w.length() < 1e-12 {
+            break;
+        }
+        v = w.normalize();
+    }
+    v
+}
+
+/// The backbone's continuous parameters (stiffness, damping, ground friction) refitted together
+/// with one candidate's (or none: the control refit). Threshold and springs per particle stay at
+/// the fitted values: they change the topology and would make the short refits noisy.
+#[derive(Debug, Clone)]
+pub struct CandidateFamily {
+    base: SpringParams,
+    candidate: Option<Candidate>,
+    frame: MaterialFrame,
+    parameters: Parameters,
+}
+
+impl CandidateFamily {
+    /// The family around the fitted `base`: stiffness and damping within ×/÷ 4 (log scale),
+    /// ground friction in [0, 1].
+    pub fn new(
+        base: SpringParams,
+        candidate: Option<Candidate>,
+        frame: MaterialFrame,
+    ) -> Result<Self, GapError> {
+        base.validate()
+            .map_err(|e| GapError::Config(format!("fitted backbone: {e}")))?;
+        let k = f64::from(base.stiffness).max(1e-3);
+        let c = f64::from(base.damping).max(1e-3);
+        let mut p = vec![
+            Parameter::log("stiffness_n_per_m", k / 4.0, k * 4.0),
+            Parameter::log("damping_ns_per_m", c / 4.0, c * 4.0),
+            Parameter::linear(
+                "ground_friction",
+                0.0,
+                1.0_f64.max(f64::from(base.ground_friction)),
+            ),
+        ];
+        if let Some(cand) = candidate {
+            p.extend(cand.parameters());
+        }
+        Ok(CandidateFamily {
+            base,
+            candidate,
+            frame,
+            parameters: Parameters::new(p)?,
+        })
+    }
+
+    /// The candidate (None: the control).
+    pub fn candidate(&self) -> Option<Candidate> {
+        self.candidate
+    }
+
+    /// Backbone parameters and effect values of a real vector.
+    pub fn split(&self, real: &[f64]) -> (SpringParams, Vec<f64>) {
+        let params = SpringParams {
+            stiffness: real[0] as f32,
+            damping: real[1] as f32,
+            ground_friction: real[2] as f32,
+            ..self.base
+        };
+        (params, real[3..].to_vec())
+    }
+}
+
+impl Family for CandidateFamily {
+    fn name(&self) -> String {
+        format!(
+            "spring-mass+{}",
+            self.candidate.map_or("control", |c| c.name())
+        )
+    }
+    fn parameters(&self) -> &Parameters {
+        &self.parameters
+    }
+    fn x0(&self) -> Vec<f64> {
+        let b = &self.base;
+        let mut x = vec![
+            f64::from(b.stiffness).max(1e-3),
+            f64::from(b.damping).max(1e-3),
+            f64::from(b.ground_friction),
+        ];
+        if let Some(c) = self.candidate {
+            x.extend(c.start());
+        }
+        x
+    }
+    fn build(&self, real: &[f64]) -> (SpringParams, BackboneOptions) {
+        let (params, values) = self.split(real);
+        let effects = self
+            .candidate
+            .map(|c| vec![c.effect(&values, &self.frame)])
+            .unwrap_or_default();
+        (
+            params,
+            BackboneOptions {
+                masses: None,
+                effects,
+            },
+        )
+    }
+}

@@ -1,0 +1,476 @@
+//! The diagnosis: refit each candidate, compare held-out errors, decide, localise.
+
+use std::time::Instant;
+
+use fit::{Family, FitConfig};
+use glam::Vec3;
+use rayon::prelude::*;
+use scene::Scene;
+use serde::{Deserialize, Serialize};
+use springs::SpringParams;
+
+use crate::GapError;
+use crate::candidates::{Candidate, CandidateFamily, MaterialFrame};
+use crate::locate::{Where, locate};
+use crate::stats::{Comparison, Verdict, VerdictRule, decide, paired_shrinkage};
+
+/// Settings of a diagnosis.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct DiagnoseConfig {
+    /// CMA-ES candidates per generation of each refit.
+    pub population: usize,
+    /// Generations of each refit.
+    pub generations: usize,
+    /// Training scenes sampled per generation.
+    pub samples: usize,
+    /// Initial step size (normalised space); small, since refits start at the fitted backbone.
+    pub sigma0: f64,
+    /// Seed of the refits and the bootstrap.
+    pub seed: u64,
+    /// Bootstrap resamples over held-out episodes.
+    pub resamples: usize,
+    /// Verdict thresholds.
+    pub rule: VerdictRule,
+    /// Library candidates to try.
+    pub candidates: Vec<Candidate>,
+    /// Also fit the generic external-field probe (needed for `unknown`).
+    pub probe: bool,
+    /// Training scenes used for the residual signatures.
+    pub signature_scenes: usize,
+}
+
+impl Default for DiagnoseConfig {
+    fn default() -> Self {
+        DiagnoseConfig {
+            population: 8,
+            generations: 10,
+            samples: 8,
+            sigma0: 0.15,
+            seed: 0,
+            resamples: 2000,
+            rule: VerdictRule::default(),
+            candidates: Candidate::LIBRARY.to_vec(),
+            probe: true,
+            signature_scenes: 4,
+        }
+    }
+}
+
+/// Held-out metrics of one model, means over episodes of per-episode means over steps, cm.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Heldout {
+    /// Mean distance error.
+    pub mde_cm: f64,
+    /// Two-sided Chamfer (sum of both one-sided means).
+    pub chamfer_cm: f64,
+    /// Exact EMD (NaN when not computed).
+    pub emd_cm: f64,
+    /// Per-episode MDE, cm.
+    pub per_episode_mde_cm: Vec<f64>,
+    /// Per-step MDE, mean over episodes, cm.
+    pub per_step_mde_cm: Vec<f64>,
+    /// Episodes whose rollout failed (diverged); scored with the control's error.
+    pub failed: usize,
+}
+
+/// One ranked candidate.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct RankedEffect {
+    /// Effect name.
+    pub effect: String,
+    /// Held-out MDE of the control refit (backbone alone, same budget), cm.
+    pub heldout_mde_before_cm: f64,
+    /// Held-out MDE with the effect refitted, cm.
+    pub heldout_mde_after_cm: f64,
+    /// `1 − after / before` (MDE summed over held-out episodes).
+    pub shrinkage: f64,
+    /// 95% bootstrap interval of the shrinkage over held-out episodes.
+    pub ci95: [f64; 2],
+    /// Whether the verdict rule counts it as a significant improvement.
+    pub significant: bool,
+    /// Cosine between the residual (data − backbone) and the effect's signature on training
+    /// episodes (signed; the effect's change of the prediction at its starting strength).
+    pub signature_cosine: f64,
+    /// Fitted parameters: the backbone's three continuous ones, then the effect's.
+    pub fitted: Vec<(String, f64)>,
+    /// Best training loss of the refit, m².
+    pub train_loss_m2: f64,
+    /// Wall time of the refit, s.
+    pub refit_wall_s: f64,
+}
+
+/// Before / after for the verdict's effect.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct HowFar {
+    /// The effect added (the best-ranked candidate when the verdict is not an effect).
+    pub effect: String,
+    /// Control refit (backbone alone).
+    pub before: Heldout,
+    /// With the effect.
+    pub after: Heldout,
+    /// Shrinkage of MDE, Chamfer and EMD (fractions).
+    pub shrinkage_mde: f64,
+    /// Chamfer shrinkage.
+    pub shrinkage_chamfer: f64,
+    /// EMD shrinkage.
+    pub shrinkage_emd: f64,
+}
+
+/// The diagnosis report (`report.json`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Diagnosis {
+    /// `"<effect>"`, `"none"` or `"unknown"`.
+    pub verdict: String,
+    /// Library candidates, best shrinkage first.
+    pub ranking: Vec<RankedEffect>,
+    /// The generic external-field probe against the control.
+    pub probe: Option<RankedEffect>,
+    /// The probe against the best significant library candidate.
+    pub probe_vs_best: Option<Comparison>,
+    /// Where the fitted backbone errs on held-out episodes.
+    pub r#where: Where,
+    /// Before / after the verdict's effect.
+    pub how_far: Option<HowFar>,
+    /// The fitted backbone as given, on held-out episodes.
+    pub backbone_as_given: Heldout,
+    /// The settings.
+    pub config: DiagnoseConfig,
+    /// Training / held-out episodes.
+    pub episodes: [usize; 2],
+    /// Wall time, s.
+    pub wall_s: f64,
+}
+
+struct Model {
+    family: CandidateFamily,
+    real: Vec<f64>,
+    train_loss: f64,
+    wall_s: f64,
+}
+
+fn predict(family: &CandidateFamily, real: &[f64], scene: &Scene) -> Option<Vec<Vec<Vec3>>> {
+    let (params, options) = family.build(real);
+    let pred = scene.rollout(&params, &scene.sim_config(), options).ok()?;
+    pred.iter().flatten().all(|p| p.is_finite()).then_some(pred)
+}
+
+fn heldout(
+    family: &CandidateFamily,
+    real: &[f64],
+    val: &[Scene],
+    fallback: Option<&Heldout>,
+    emd: bool,
+) -> Result<Heldout, GapError> {
+    let per: Vec<Option<Vec<scene::StepErrors>>> = val
+        .par_iter()
+        .map(|s| predict(family, real, s).and_then(|p| scene::score_steps(s, &p, emd).ok()))
+        .collect();
+    let steps = val.iter().map(|s| s.truth.len()).max().unwrap_or(0);
+    let (mut mde, mut ch, mut em) = (Vec::new(), 0.0, 0.0);
+    let mut per_step = vec![0.0; steps];
+    let mut failed = 0;
+    for (k, r) in per.iter().enumerate() {
+        match r {
+            Some(e) => {
+                let m = |f: &dyn Fn(&scene::StepErrors) -> f64| {
+                    100.0 * e.iter().map(f).sum::<f64>() / e.len().max(1) as f64
+                };
+                mde.push(m(&|x| x.mde));
+                ch += m(&|x| x.chamfer_two_sided());
+                em += m(&|x| x.emd);
+                for (s, x) in e.iter().enumerate() {
+                    per_step[s] += 100.0 * x.mde;
+                }
+            }
+            None => {
+                // A diverged candidate is as bad as its control on that episode at best; use the
+                // control's error so one failure cannot make an effect look good.
+                let fb = fallback.ok_or(GapError::Rollout { index: k })?;
+                failed += 1;
+                mde.push(fb.per_episode_mde_cm[k]);
+                for (s, v) in per_step.iter_mut().zip(&fb.per_step_mde_cm) {
+                    *s += v;
+                }
+            }
+        }
+    }
+    let n = val.len().max(1) as f64;
+    let ok = (val.len() - failed).max(1) as f64;
+    Ok(Heldout {
+        mde_cm: mde.iter().sum::<f64>() / n,
+        chamfer_cm: ch / ok,
+        emd_cm: if emd { em / ok } else { f64::NAN },
+        per_episode_mde_cm: mde,
+        per_step_mde_cm: per_step.iter().map(|v| v / n).collect(),
+        failed,
+    })
+}
+
+/// Cosine between the residual `truth − base` and the effect's signature
+/// `pred(start) − pred(neutral)` over the tracked, visible positions of `scenes`.
+fn signature_cosine(
+    base: &SpringParams,
+    cand: Candidate,
+    frame: &MaterialFrame,
+    scenes: &[Scene],
+) -> f64 {
+    let parts: Vec<(f64, f64, f64)> = scenes
+        .par_iter()
+        .map(|s| {
+            let cfg = s.sim_config();
+            let run = |v: &[f64]| {
+                let options = springs::BackboneOptions {
+                    masses: None,
+                    effects: vec![cand.effect(v, frame)],
+                };
+                s.rollout(base, &cfg, options).ok()
+            };
+            let plain = s.rollout(base, &cfg, Default::default()).ok();
+            let (Some(plain), Some(on), Some(off)) =
+                (plain, run(&cand.start()), run(&cand.neutral()))
+            else {
+                return (0.0, 0.0, 0.0);
+            };
+            let (mut rs, mut rr, mut ss) = (0.0, 0.0, 0.0);
+            for t in 0..s.truth.len() {
+                let all = !s.visible[t].iter().any(|v| *v);
+                for i in 0..s.tracked {
+                    if all || s.visible[t][i] {
+                        let r = s.truth[t][i] - plain[t][i];
+                        let g = on[t][i] - off[t][i];
+                        if r.is_finite() && g.is_finite() {
+                            rs += f64::from(r.dot(g));
+                            rr += f64::from(r.length_squared());
+                            ss += f64::from(g.length_squared());
+                        }
+                    }
+                }
+            }
+            (rs, rr, ss)
+        })
+        .collect();
+    let (rs, rr, ss) = parts
+        .iter()
+        .fold((0.0, 0.0, 0.0), |a, b| (a.0 + b.0, a.1 + b.1, a.2 + b.2));
+    if rr > 0.0 && ss > 0.0 {
+        rs / (rr * ss).sqrt()
+    } else {
+        0.0
+    }
+}
+
+/// The training data's mean tracked position and the reference shape's frame.
+pub fn material_frame(train: &[Scene]) -> Result<MaterialFrame, GapError> {
+    let first = train.first().ok_or(GapError::NoScenes("training"))?;
+    let (mut sum, mut count) = (Vec3::ZERO, 0usize);
+    for s in train {
+        for p in s.truth.iter().flatten() {
+            sum += *p;
+            count += 1;
+        }
+    }
+    MaterialFrame::new(&first.init.x[..first.tracked], sum / count.max(1) as f32)
+}
+
+/// Diagnoses the gap of the fitted backbone `base` on `train` / `val` scenes. `progress` gets
+/// one line per finished stage.
+pub fn diagnose(
+    train: &[Scene],
+    val: &[Scene],
+    base: &SpringParams,
+    config: &DiagnoseConfig,
+    progress: &mut dyn FnMut(&str),
+) -> Result<Diagnosis, GapError> {
+    let t0 = Instant::now();
+    if train.is_empty() {
+        return Err(GapError::NoScenes("training"));
+    }
+    if val.is_empty() {
+        return Err(GapError::NoScenes("held-out"));
+    }
+    if config.population < 2 || config.samples == 0 || config.resamples == 0 {
+        return Err(GapError::Config(
+            "population >= 2, samples >= 1 and resamples >= 1 are needed".into(),
+        ));
+    }
+    if let Some(s) = train
+        .iter()
+        .chain(val)
+        .find(|s| s.tracked != train[0].tracked)
+    {
+        return Err(GapError::Config(format!(
+            "episodes track different particle counts ({} vs {})",
+            s.tracked, train[0].tracked
+        )));
+    }
+    let frame = material_frame(train)?;
+    let fit_cfg = FitConfig {
+        population: config.population,
+        generations: config.generations,
+        samples: config.samples,
+        sigma0: config.sigma0,
+        seed: config.seed,
+    };
+    let refit = |cand: Option<Candidate>| -> Result<Model, GapError> {
+        let t = Instant::now();
+        let family = CandidateFamily::new(*base, cand, frame.clone())?;
+        let out = fit::fit(train, &family, &fit_cfg, None, &mut |_| {})?;
+        Ok(Model {
+            family,
+            real: out.best,
+            train_loss: out.best_loss,
+            wall_s: t.elapsed().as_secs_f64(),
+        })
+    };
+    // The fitted backbone as given.
+    let given = CandidateFamily::new(*base, None, frame.clone())?;
+    let given_real = given.x0();
+    let given_preds: Vec<Option<Vec<Vec<Vec3>>>> = val
+        .par_iter()
+        .map(|s| predict(&given, &given_real, s))
+        .collect();
+    let preds: Vec<Vec<Vec<Vec3>>> = given_preds
+        .into_iter()
+        .enumerate()
+        .map(|(k, p)| p.ok_or(GapError::Rollout { index: k }))
+        .collect::<Result<_, _>>()?;
+    let place = locate(val, &preds, &frame.coordinate);
+    let backbone_as_given = heldout(&given, &given_real, val, None, false)?;
+    progress(&format!(
+        "backbone as given: held-out MDE {:.3} cm",
+        backbone_as_given.mde_cm
+    ));
+    let control = refit(None)?;
+    let control_h = heldout(&control.family, &control.real, val, None, false)?;
+    progress(&format!(
+        "control refit: held-out MDE {:.3} cm ({:.1} s)",
+        control_h.mde_cm, control.wall_s
+    ));
+    let sig_scenes = &train[..config.signature_scenes.clamp(1, train.len())];
+    let mut all = config.candidates.clone();
+    if config.probe {
+        all.push(Candidate::ExternalField);
+    }
+    let mut entries = Vec::new();
+    let mut models = Vec::new();
+    for (k, cand) in all.iter().enumerate() {
+        let model = refit(Some(*cand))?;
+        let h = heldout(&model.family, &model.real, val, Some(&control_h), false)?;
+        let cmp = paired_shrinkage(
+            &control_h.per_episode_mde_cm,
+            &h.per_episode_mde_cm,
+            config.resamples,
+            config.seed ^ (k as u64 + 1),
+        )?;
+        let names = model
+            .family
+            .parameters()
+            .params()
+            .iter()
+            .map(|p| p.name.clone());
+        let entry = RankedEffect {
+            effect: cand.name().to_string(),
+            heldout_mde_before_cm: control_h.mde_cm,
+            heldout_mde_after_cm: h.mde_cm,
+            shrinkage: cmp.shrinkage,
+            ci95: cmp.ci95,
+            significant: cmp.significant(config.rule.min_shrinkage),
+            signature_cosine: signature_cosine(base, *cand, &frame, sig_scenes),
+            fitted: names.zip(model.real.iter().copied()).collect(),
+            train_loss_m2: model.train_loss,
+            refit_wall_s: model.wall_s,
+        };
+        progress(&format!(
+            "{:<24} held-out MDE {:.3} -> {:.3} cm, shrinkage {:+.3} [{:+.3}, {:+.3}], signature cos {:+.2} ({:.1} s)",
+            entry.effect,
+            entry.heldout_mde_before_cm,
+            entry.heldout_mde_after_cm,
+            entry.shrinkage,
+            entry.ci95[0],
+            entry.ci95[1],
+            entry.signature_cosine,
+            entry.refit_wall_s
+        ));
+        entries.push((entry, h));
+        models.push(model);
+    }
+    let probe = if config.probe {
+        entries.pop().map(|(e, h)| (e, h, models.pop()))
+    } else {
+        None
+    };
+    let mut order: Vec<usize> = (0..entries.len()).collect();
+    order.sort_by(|a, b| {
+        entries[*b]
+            .0
+            .shrinkage
+            .total_cmp(&entries[*a].0.shrinkage)
+            .then(a.cmp(b))
+    });
+    let library: Vec<(String, Comparison)> = entries
+        .iter()
+        .map(|(e, _)| {
+            (
+                e.effect.clone(),
+                Comparison {
+                    shrinkage: e.shrinkage,
+                    ci95: e.ci95,
+                },
+            )
+        })
+        .collect();
+    let best_sig = order.iter().copied().find(|i| entries[*i].0.significant);
+    let probe_vs_best = match (&probe, best_sig) {
+        (Some((_, ph, _)), Some(b)) => Some(paired_shrinkage(
+            &entries[b].1.per_episode_mde_cm,
+            &ph.per_episode_mde_cm,
+            config.resamples,
+            config.seed ^ 0xB0B,
+        )?),
+        _ => None,
+    };
+    let probe_vs_control = probe.as_ref().map(|(e, _, _)| Comparison {
+        shrinkage: e.shrinkage,
+        ci95: e.ci95,
+    });
+    let verdict = decide(&library, probe_vs_control, probe_vs_best, &config.rule);
+    // How far: the verdict's effect, or the top-ranked one for reference.
+    let shown = match &verdict {
+        Verdict::Effect(name) => entries.iter().position(|(e, _)| &e.effect == name),
+        _ => order.first().copied(),
+    };
+    let how_far = match shown {
+        Some(i) => {
+            let before = heldout(&control.family, &control.real, val, None, true)?;
+            let after = heldout(
+                &models[i].family,
+                &models[i].real,
+                val,
+                Some(&control_h),
+                true,
+            )?;
+            let sh = |b: f64, a: f64| if b > 0.0 { 1.0 - a / b } else { 0.0 };
+            Some(HowFar {
+                effect: entries[i].0.effect.clone(),
+                shrinkage_mde: sh(before.mde_cm, after.mde_cm),
+                shrinkage_chamfer: sh(before.chamfer_cm, after.chamfer_cm),
+                shrinkage_emd: sh(before.emd_cm, after.emd_cm),
+                before,
+                after,
+            })
+        }
+        None => None,
+    };
+    Ok(Diagnosis {
+        verdict: verdict.label().to_string(),
+        ranking: order.iter().map(|i| entries[*i].0.clone()).collect(),
+        probe: probe.map(|(e, _, _)| e),
+        probe_vs_best,
+        r#where: place,
+        how_far,
+        backbone_as_given,
+        config: config.clone(),
+        episodes: [train.len(), val.len()],
+        wall_s: t0.elapsed().as_secs_f64(),
+    })
+}

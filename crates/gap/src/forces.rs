@@ -1,0 +1,570 @@
+//! The candidate effects as [`springs::Effect`]s. Each is a textbook form with one to two
+//! parameters; at its neutral value it leaves the backbone unchanged (grasp slip: approaches it).
+//! Formulas and ranges are listed in `docs/gap.md`.
+
+use std::any::Any;
+use std::sync::Arc;
+
+use glam::{Vec3, Vec3A};
+use springs::{
+    Backbone, Effect, GROUND_VISCOUS_FRICTION, GroundContact, ModelSetup, SimError, SubstepContext,
+};
+
+fn bad(name: &str, message: String) -> SimError {
+    SimError::Effect {
+        name: name.to_owned(),
+        message,
+    }
+}
+
+fn check_finite(name: &str, values: &[(&str, f32)]) -> Result<(), SimError> {
+    for (what, v) in values {
+        if !v.is_finite() {
+            return Err(bad(name, format!("{what} = {v} is not finite")));
+        }
+    }
+    Ok(())
+}
+
+/// Material coordinate of every simulated particle: the tracked particles' own values, and for
+/// hidden / interior particles the value of the nearest tracked particle at rest.
+fn material_of_all(name: &str, material: &[f32], rest: &[Vec3]) -> Result<Vec<f32>, SimError> {
+    let tracked = material.len();
+    if rest.len() < tracked || tracked == 0 {
+        return Err(bad(
+            name,
+            format!(
+                "{} particles but {tracked} material coordinates",
+                rest.len()
+            ),
+        ));
+    }
+    let mut u = material.to_vec();
+    for p in &rest[tracked..] {
+        let nearest = rest[..tracked]
+            .iter()
+            .enumerate()
+            .map(|(i, q)| (q.distance_squared(*p), i))
+            .min_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)))
+            .map_or(0, |(_, i)| i);
+        u.push(material[nearest]);
+    }
+    Ok(u)
+}
+
+/// Quadratic drag `F = −c |v| v` per particle (`c = ½ ρ C_d A`, kg/m, equal areas); the
+/// impulse per substep is capped at the particle's momentum so drag never reverses a velocity.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct QuadraticDrag {
+    /// `½ ρ C_d A`, kg/m.
+    pub coefficient: f32,
+}
+
+impl Effect for QuadraticDrag {
+    fn name(&self) -> &str {
+        "drag"
+    }
+    fn setup(&mut self, _model: &mut ModelSetup<'_>) -> Result<(), SimError> {
+        check_finite("drag", &[("coefficient", self.coefficient)])
+    }
+    fn add_forces(
+        &self,
+        ctx: &SubstepContext<'_>,
+        _s: &mut dyn Any,
+        _r: &[f32],
+        force: &mut [Vec3A],
+    ) {
+        let masses = ctx.backbone.masses();
+        for ((f, v), m) in force.iter_mut().zip(ctx.v).zip(masses) {
+            let speed = v.length();
+            if speed > 0.0 {
+                let magnitude = (self.coefficient.abs() * speed * speed).min(m * speed / ctx.dt);
+                *f -= *v * (magnitude / speed);
+            }
+        }
+    }
+}
+
+/// Per-spring stiffness `k_s = k exp(a ū_s)`, `ū_s` the mean material coordinate of the
+/// spring's ends (`u ∈ [−1, 1]` along the rest shape's principal axis).
+#[derive(Debug, Clone)]
+pub struct StiffnessGradient {
+    /// Log-stiffness slope along the axis (0: uniform).
+    pub slope: f32,
+    /// Material coordinate of each tracked particle.
+    pub material: Arc<Vec<f32>>,
+}
+
+impl Effect for StiffnessGradient {
+    fn name(&self) -> &str {
+        "stiffness-heterogeneity"
+    }
+    fn setup(&mut self, model: &mut ModelSetup<'_>) -> Result<(), SimError> {
+        check_finite(self.name(), &[("slope", self.slope)])?;
+        let u = material_of_all(self.name(), &self.material, model.rest_positions)?;
+        for (k, [a, b]) in model.stiffness.iter_mut().zip(model.springs) {
+            *k *= (self.slope * 0.5 * (u[*a as usize] + u[*b as usize])).exp();
+        }
+        Ok(())
+    }
+}
+
+/// Mass per particle `m_i ∝ exp(b u_i)` along the principal axis, normalised to mean 1 so the
+/// total mass is unchanged.
+#[derive(Debug, Clone)]
+pub struct MassGradient {
+    /// Log-mass slope along the axis (0: uniform).
+    pub slope: f32,
+    /// Material coordinate of each tracked particle.
+    pub material: Arc<Vec<f32>>,
+}
+
+impl Effect for MassGradient {
+    fn name(&self) -> &str {
+        "mass-distribution"
+    }
+    fn setup(&mut self, model: &mut ModelSetup<'_>) -> Result<(), SimError> {
+        check_finite(self.name(), &[("slope", self.slope)])?;
+        let u = material_of_all(self.name(), &self.material, model.rest_positions)?;
+        let w: Vec<f32> = u.iter().map(|u| (self.slope * u).exp()).collect();
+        let mean = w.iter().sum::<f32>() / w.len().max(1) as f32;
+        for (m, w) in model.masses.iter_mut().zip(&w) {
+            *m *= w / mean;
+        }
+        Ok(())
+    }
+}
+
+/// Strain-dependent spring term: in tension the axial force becomes
+/// `k Δl (1 + β min(ε, ε_max)²)`, in compression `k Δl (1 − γ)` (`ε = Δl / l₀`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StrainStiffening {
+    /// Stiffening coefficient β (0: linear).
+    pub beta: f32,
+    /// Compression softening γ in [0, 1) (0: symmetric).
+    pub gamma: f32,
+}
+
+/// Strain at which stiffening saturates (keeps the stability bound finite).
+pub const STIFFENING_MAX_STRAIN: f32 = 0.05;
+
+impl Effect for StrainStiffening {
+    fn name(&self) -> &str {
+        "nonlinear-elasticity"
+    }
+    fn setup(&mut self, _model: &mut ModelSetup<'_>) -> Result<(), SimError> {
+        check_finite(self.name(), &[("beta", self.beta), ("gamma", self.gamma)])?;
+        if self.beta < 0.0 || !(0.0..1.0).contains(&self.gamma) {
+            return Err(bad(self.name(), "need beta >= 0 and 0 <= gamma < 1".into()));
+        }
+        Ok(())
+    }
+    fn stability(&self, backbone: &Backbone, row: &mut [f32], _damping: &mut [f32]) {
+        // Tangent stiffness of the extra term is at most 3 β ε_max² k.
+        let factor = 3.0 * self.beta * STIFFENING_MAX_STRAIN * STIFFENING_MAX_STRAIN;
+        for (k, [a, b]) in backbone.stiffness().iter().zip(backbone.springs()) {
+            row[*a as usize] += 2.0 * factor * k;
+            row[*b as usize] += 2.0 * factor * k;
+        }
+    }
+    fn add_forces(
+        &self,
+        ctx: &SubstepContext<'_>,
+        _s: &mut dyn Any,
+        rest: &[f32],
+        force: &mut [Vec3A],
+    ) {
+        let bb = ctx.backbone;
+        for ((k, [a, b]), l0) in bb.stiffness().iter().zip(bb.springs()).zip(rest) {
+            let (a, b) = (*a as usize, *b as usize);
+            let d = ctx.x[b] - ctx.x[a];
+            let l = d.length();
+            if l <= 0.0 || *l0 <= 0.0 {
+                continue;
+            }
+            let dl = l - l0;
+            let strain = dl / l0;
+            let extra = if strain > 0.0 {
+                let e = strain.min(STIFFENING_MAX_STRAIN);
+                k * dl * self.beta * e * e
+            } else {
+                -k * dl * self.gamma
+            };
+            let f = d * (extra / l);
+            force[a] += f;
+            force[b] -= f;
+        }
+    }
+}
+
+/// Bending springs: extra springs of stiffness `κ k` between particles whose rest distance is
+/// in `(threshold, 2 threshold]` (the second ring of neighbours), at most
+/// [`BENDING_PER_PARTICLE`] nearest per particle.
+#[derive(Debug, Clone, Default)]
+pub struct BendingSprings {
+    /// Relative stiffness κ of the bending springs (0: none).
+    pub relative_stiffness: f32,
+    pairs: Vec<[u32; 2]>,
+    rest: Vec<f32>,
+    stiffness: f32,
+}
+
+/// Most bending springs started from one particle.
+pub const BENDING_PER_PARTICLE: usize = 6;
+
+impl BendingSprings {
+    /// Bending springs with relative stiffness κ.
+    pub fn new(relative_stiffness: f32) -> Self {
+        BendingSprings {
+            relative_stiffness,
+            ..Default::default()
+        }
+    }
+}
+
+impl Effect for BendingSprings {
+    fn name(&self) -> &str {
+        "bending"
+    }
+    fn setup(&mut self, model: &mut ModelSetup<'_>) -> Result<(), SimError> {
+        check_finite(
+            self.name(),
+            &[("relative_stiffness", self.relative_stiffness)],
+        )?;
+        let x = model.rest_positions;
+        let r = model.params.threshold;
+        let mut pairs = std::collections::BTreeSet::new();
+        for (i, p) in x.iter().enumerate() {
+            let mut near: Vec<(f32, usize)> = x
+                .iter()
+                .enumerate()
+                .map(|(j, q)| (p.distance(*q), j))
+                .filter(|(d, _)| *d > r && *d <= 2.0 * r)
+                .collect();
+            near.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+            for (_, j) in near.into_iter().take(BENDING_PER_PARTICLE) {
+                pairs.insert([i.min(j) as u32, i.max(j) as u32]);
+            }
+        }
+        self.pairs = pairs.into_iter().collect();
+        self.rest = self
+            .pairs
+            .iter()
+            .map(|[a, b]| x[*a as usize].distance(x[*b as usize]))
+            .collect();
+        self.stiffness = self.relative_stiffness.max(0.0) * model.params.stiffness;
+        Ok(())
+    }
+    fn stability(&self, _backbone: &Backbone, row: &mut [f32], _damping: &mut [f32]) {
+        for [a, b] in &self.pairs {
+            row[*a as usize] += 2.0 * self.stiffness;
+            row[*b as usize] += 2.0 * self.stiffness;
+        }
+    }
+    fn add_forces(
+        &self,
+        ctx: &SubstepContext<'_>,
+        _s: &mut dyn Any,
+        _r: &[f32],
+        force: &mut [Vec3A],
+    ) {
+        if self.stiffness == 0.0 {
+            return;
+        }
+        for ([a, b], l0) in self.pairs.iter().zip(&self.rest) {
+            let (a, b) = (*a as usize, *b as usize);
+            let d = ctx.x[b] - ctx.x[a];
+            let l = d.length();
+            if l > 0.0 {
+                let f = d * (self.stiffness * (l - l0) / l);
+                force[a] += f;
+                force[b] -= f;
+            }
+        }
+    }
+}
+
+/// Static/kinetic ground friction: a particle whose tangential speed after the force update is
+/// below `(μ + Δ) N dt / m` sticks (speed 0); otherwise the backbone's law (viscous, capped by
+/// kinetic Coulomb with the backbone's μ) applies. Δ = μ_s − μ_k ≥ 0; Δ = 0 is the backbone.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StickSlipFriction {
+    /// Static excess Δ = μ_s − μ_k.
+    pub static_excess: f32,
+}
+
+impl Effect for StickSlipFriction {
+    fn name(&self) -> &str {
+        "friction"
+    }
+    fn setup(&mut self, _model: &mut ModelSetup<'_>) -> Result<(), SimError> {
+        check_finite(self.name(), &[("static_excess", self.static_excess)])
+    }
+    fn replaces_ground_friction(&self) -> bool {
+        true
+    }
+    fn ground_friction(&self, c: &GroundContact) -> Vec3A {
+        let speed = c.tangential_velocity.length();
+        if speed == 0.0 {
+            return c.tangential_velocity;
+        }
+        let per_mu = c.normal_force * c.dt / c.mass;
+        if self.static_excess > 0.0 && speed <= (c.mu + self.static_excess) * per_mu {
+            return Vec3A::ZERO;
+        }
+        let r = GROUND_VISCOUS_FRICTION * c.dt / c.mass;
+        let dec = (speed * r / (1.0 + r)).min(c.mu * per_mu);
+        c.tangential_velocity * (1.0 - dec / speed)
+    }
+}
+
+/// Plastic creep: when a spring's strain exceeds the yield strain ε_y, its rest length flows
+/// towards the current length at rate `dl₀/dt = η (|ε| − ε_y) sign(ε) l₀`, never past the
+/// yield surface.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PlasticCreep {
+    /// Yield strain ε_y.
+    pub yield_strain: f32,
+    /// Flow rate η, 1/s (0: elastic).
+    pub rate: f32,
+}
+
+impl Effect for PlasticCreep {
+    fn name(&self) -> &str {
+        "plasticity"
+    }
+    fn setup(&mut self, _model: &mut ModelSetup<'_>) -> Result<(), SimError> {
+        check_finite(
+            self.name(),
+            &[("yield_strain", self.yield_strain), ("rate", self.rate)],
+        )
+    }
+    fn end_substep(&self, ctx: &SubstepContext<'_>, _s: &mut dyn Any, rest: &mut [f32]) {
+        if self.rate <= 0.0 {
+            return;
+        }
+        for ([a, b], l0) in ctx.backbone.springs().iter().zip(rest.iter_mut()) {
+            let l = ctx.x[*a as usize].distance(ctx.x[*b as usize]);
+            if *l0 <= 0.0 {
+                continue;
+            }
+            let strain = (l - *l0) / *l0;
+            let excess = strain.abs() - self.yield_strain;
+            if excess > 0.0 {
+                // Stop at the yield surface so the update cannot overshoot.
+                let target = l / (1.0 + self.yield_strain * strain.signum());
+                let step = (self.rate * ctx.dt * excess * *l0).min((target - *l0).abs());
+                *l0 += step * strain.signum();
+            }
+        }
+    }
+}
+
+/// Actuation delay: the true gripper follows the recorded one `τ` model steps late (linear
+/// interpolation between recorded frames; before the first frame it stays there).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ActuationLag {
+    /// Delay τ in model steps (fractional; 0: none).
+    pub steps: f32,
+}
+
+#[derive(Default)]
+struct LagState {
+    positions: Vec<Vec<Vec3>>,
+    closed: Vec<Vec<bool>>,
+}
+
+impl LagState {
+    fn at(&self, s: f32) -> Vec<Vec3> {
+        let last = self.positions.len() - 1;
+        let s = s.clamp(0.0, last as f32);
+        let i = (s.floor() as usize).min(last);
+        let j = (i + 1).min(last);
+        let w = s - i as f32;
+        self.positions[i]
+            .iter()
+            .zip(&self.positions[j])
+            .map(|(a, b)| a.lerp(*b, w))
+            .collect()
+    }
+}
+
+impl Effect for ActuationLag {
+    fn name(&self) -> &str {
+        "actuation-delay"
+    }
+    fn setup(&mut self, _model: &mut ModelSetup<'_>) -> Result<(), SimError> {
+        check_finite(self.name(), &[("steps", self.steps)])?;
+        if self.steps < 0.0 {
+            return Err(bad(self.name(), "delay must be >= 0".into()));
+        }
+        Ok(())
+    }
+    fn new_state(&self, _backbone: &Backbone) -> Box<dyn Any + Send> {
+        Box::new(LagState::default())
+    }
+    fn adjust_actions(
+        &self,
+        state: &mut dyn Any,
+        from: &mut [Vec3],
+        to: &mut [Vec3],
+        closed: &mut [bool],
+    ) {
+        let Some(st) = state.downcast_mut::<LagState>() else {
+            return;
+        };
+        if st.positions.is_empty() {
+            st.positions.push(from.to_vec());
+        }
+        st.positions.push(to.to_vec());
+        st.closed.push(closed.to_vec());
+        if self.steps == 0.0 {
+            return;
+        }
+        let t = (st.positions.len() - 2) as f32;
+        from.copy_from_slice(&st.at(t - self.steps));
+        to.copy_from_slice(&st.at(t + 1.0 - self.steps));
+        let c = ((t - self.steps).round().max(0.0) as usize).min(st.closed.len() - 1);
+        closed.copy_from_slice(&st.closed[c]);
+    }
+}
+
+/// Compliant, slipping grasp: a held particle is tied to its grasp point on the closed gripper
+/// by a spring `k_g` with damping `2 √(k_g m)` (critical); when the spring force exceeds
+/// `F_max` the grasp point slides so the force stays at `F_max`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SlippingGrasp {
+    /// Grasp spring stiffness, N/m.
+    pub stiffness: f32,
+    /// Force at which the grasp slips, N.
+    pub max_force: f32,
+}
+
+struct GraspState {
+    /// Grasp point of each particle relative to its gripper (None: not attached).
+    offsets: Vec<Option<Vec3A>>,
+}
+
+impl SlippingGrasp {
+    fn damping(&self, mass: f32) -> f32 {
+        2.0 * (self.stiffness * mass).sqrt()
+    }
+}
+
+impl Effect for SlippingGrasp {
+    fn name(&self) -> &str {
+        "grasp-slip"
+    }
+    fn setup(&mut self, _model: &mut ModelSetup<'_>) -> Result<(), SimError> {
+        check_finite(
+            self.name(),
+            &[("stiffness", self.stiffness), ("max_force", self.max_force)],
+        )?;
+        if self.stiffness <= 0.0 || self.max_force <= 0.0 {
+            return Err(bad(
+                self.name(),
+                "stiffness and max_force must be > 0".into(),
+            ));
+        }
+        Ok(())
+    }
+    fn compliant_grasp(&self) -> bool {
+        true
+    }
+    fn stability(&self, backbone: &Backbone, row: &mut [f32], damping: &mut [f32]) {
+        for (i, h) in backbone.held().iter().enumerate() {
+            if *h >= 0 {
+                row[i] += self.stiffness;
+                damping[i] += self.damping(backbone.masses()[i]);
+            }
+        }
+    }
+    fn new_state(&self, backbone: &Backbone) -> Box<dyn Any + Send> {
+        Box::new(GraspState {
+            offsets: vec![None; backbone.num_particles()],
+        })
+    }
+    fn add_forces(
+        &self,
+        ctx: &SubstepContext<'_>,
+        state: &mut dyn Any,
+        _r: &[f32],
+        force: &mut [Vec3A],
+    ) {
+        let Some(st) = state.downcast_mut::<GraspState>() else {
+            return;
+        };
+        let bb = ctx.backbone;
+        for (i, h) in bb.held().iter().enumerate() {
+            let g = *h as usize;
+            if *h < 0 || g >= ctx.grippers.len() {
+                continue;
+            }
+            if !ctx.closed[g] {
+                st.offsets[i] = None;
+                continue;
+            }
+            let grip = Vec3A::from(ctx.grippers[g]);
+            let offset = *st.offsets[i].get_or_insert(ctx.x[i] - grip);
+            let d = grip + offset - ctx.x[i];
+            let spring = d * self.stiffness;
+            let magnitude = spring.length();
+            let spring = if magnitude > self.max_force {
+                // Slip: move the grasp point so the spring carries exactly F_max.
+                let reach = d * (self.max_force / magnitude);
+                st.offsets[i] = Some(ctx.x[i] + reach - grip);
+                reach * self.stiffness
+            } else {
+                spring
+            };
+            let rel = Vec3A::from(ctx.gripper_velocities[g]) - ctx.v[i];
+            force[i] += spring + rel * self.damping(bb.masses()[i]);
+        }
+    }
+}
+
+/// Not a library effect: a generic external acceleration field, first order in position,
+/// `a(x) = a₀ + g (x − x̄)` (m/s²) around a fixed world point `x̄`. It probes whether a
+/// significant, learnable gap remains that no named effect explains.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ExternalField {
+    /// Uniform acceleration a₀, m/s².
+    pub uniform: Vec3,
+    /// Isotropic gradient g, 1/s² (negative: attraction towards `centre`).
+    pub gradient: f32,
+    /// Expansion point x̄, m.
+    pub centre: Vec3,
+}
+
+impl Effect for ExternalField {
+    fn name(&self) -> &str {
+        "external-field"
+    }
+    fn setup(&mut self, _model: &mut ModelSetup<'_>) -> Result<(), SimError> {
+        let finite =
+            self.uniform.is_finite() && self.gradient.is_finite() && self.centre.is_finite();
+        if finite {
+            Ok(())
+        } else {
+            Err(bad(self.name(), "non-finite field".into()))
+        }
+    }
+    fn stability(&self, backbone: &Backbone, row: &mut [f32], _damping: &mut [f32]) {
+        for (r, m) in row.iter_mut().zip(backbone.masses()) {
+            *r += self.gradient.abs() * m;
+        }
+    }
+    fn add_forces(
+        &self,
+        ctx: &SubstepContext<'_>,
+        _s: &mut dyn Any,
+        _r: &[f32],
+        force: &mut [Vec3A],
+    ) {
+        let a0 = Vec3A::from(self.uniform);
+        let c = Vec3A::from(self.centre);
+        for ((f, x), m) in force.iter_mut().zip(ctx.x).zip(ctx.backbone.masses()) {
+            *f += (a0 + (*x - c) * self.gradient) * *m;
+        }
+    }
+}

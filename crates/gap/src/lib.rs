@@ -1,0 +1,69 @@
+//! Sim-to-real gap diagnosis: given tracked episodes and a fitted spring-mass backbone, say
+//! **where** its error lies (per particle, region, step, phase and state), **which** unmodelled
+//! physical effect causes it, and **how far** the held-out error shrinks once that effect is
+//! added.
+//!
+//! - [`Candidate`] is the library of nine effects (`drag`, `stiffness-heterogeneity`,
+//!   `nonlinear-elasticity`, `bending`, `friction`, `plasticity`, `actuation-delay`,
+//!   `grasp-slip`, `mass-distribution`), each a [`springs::Effect`] with one or two
+//!   parameters ([`forces`]), plus a generic external-field probe used to detect gaps no named
+//!   effect explains.
+//! - [`diagnose`] refits the backbone alone (the control) and the backbone with each candidate on
+//!   the training scenes with the same small CMA-ES budget, scores all on held-out scenes,
+//!   bootstraps the shrinkage over episodes ([`paired_shrinkage`]) and applies the verdict
+//!   rule ([`decide`]): an effect, `none` or `unknown`.
+//! - [`render_html`] turns a [`Diagnosis`] into a self-contained page.
+//!
+//! Method, formulas, parameter ranges and measured bench results: `docs/gap.md`.
+//!
+//! ```
+//! // Held-out MDE per episode of the control and of one candidate, cm.
+//! let before = [2.0, 2.4, 1.9, 2.2, 2.1, 2.3];
+//! let after = [1.2, 1.5, 1.1, 1.4, 1.2, 1.3];
+//! let c = gap::paired_shrinkage(&before, &after, 2000, 0)?;
+//! let lib = vec![("drag".to_string(), c)];
+//! let v = gap::decide(&lib, None, None, &gap::VerdictRule::default());
+//! assert_eq!(v.label(), "drag");
+//! # Ok::<(), gap::GapError>(())
+//! ```
+
+mod candidates;
+mod diagnose;
+pub mod forces;
+mod html;
+mod locate;
+mod stats;
+
+pub use candidates::{Candidate, CandidateFamily, MaterialFrame, principal_axis};
+pub use diagnose::{
+    DiagnoseConfig, Diagnosis, Heldout, HowFar, RankedEffect, diagnose, material_frame,
+};
+pub use html::render_html;
+pub use locate::{Bin, CONTACT_HEIGHT_M, Trend, Where, locate, spearman};
+pub use stats::{Comparison, Verdict, VerdictRule, decide, paired_shrinkage};
+
+/// Why a diagnosis failed.
+#[derive(Debug, thiserror::Error)]
+pub enum GapError {
+    /// A split has no scenes.
+    #[error("no {0} episodes to diagnose on")]
+    NoScenes(&'static str),
+    /// Bad settings or inputs.
+    #[error("invalid input: {0}")]
+    Config(String),
+    /// The fitted backbone itself fails on a held-out episode.
+    #[error("the fitted backbone diverged on held-out episode {index}")]
+    Rollout {
+        /// Position of the episode among the held-out scenes.
+        index: usize,
+    },
+    /// A refit failed.
+    #[error("refit: {0}")]
+    Fit(#[from] fit::FitError),
+    /// A parameter set was refused.
+    #[error("CMA-ES parameters: {0}")]
+    Cmaes(#[from] cmaes::Error),
+    /// Building a scene or scoring failed.
+    #[error("scene: {0}")]
+    Scene(#[from] scene::SceneError),
+}

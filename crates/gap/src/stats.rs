@@ -1,0 +1,223 @@
+//! Paired bootstrap over held-out episodes and the verdict rule.
+
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+
+use crate::GapError;
+
+/// How much a model's held-out error shrinks against a reference, over the same episodes.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Comparison {
+    /// `1 − Σ after / Σ before` over episodes (0: no change, 1: error gone).
+    pub shrinkage: f64,
+    /// 95% percentile interval of the shrinkage over episode resamples.
+    pub ci95: [f64; 2],
+}
+
+impl Comparison {
+    /// Significant: the interval excludes 0 and the shrinkage reaches `min_shrinkage`.
+    pub fn significant(&self, min_shrinkage: f64) -> bool {
+        self.ci95[0] > 0.0 && self.shrinkage >= min_shrinkage
+    }
+}
+
+fn ratio(before: &[f64], after: &[f64], idx: impl Iterator<Item = usize>) -> f64 {
+    let (mut b, mut a) = (0.0, 0.0);
+    for i in idx {
+        b += before[i];
+        a += after[i];
+    }
+    if b > 0.0 { 1.0 - a / b } else { 0.0 }
+}
+
+/// Paired bootstrap of the shrinkage from per-episode errors `before` and `after` (same
+/// episodes, same order): `resamples` draws of episodes with replacement, seeded.
+///
+/// ```
+/// let before = [2.0, 2.2, 1.8, 2.1, 2.0];
+/// let after = [1.0, 1.1, 0.9, 1.0, 1.1];
+/// let c = gap::paired_shrinkage(&before, &after, 1000, 7)?;
+/// assert!((c.shrinkage - 0.5).abs() < 0.02 && c.ci95[0] > 0.4);
+/// # Ok::<(), gap::GapError>(())
+/// ```
+pub fn paired_shrinkage(
+    before: &[f64],
+    after: &[f64],
+    resamples: usize,
+    seed: u64,
+) -> Result<Comparison, GapError> {
+    let n = before.len();
+    if n == 0 || after.len() != n {
+        return Err(GapError::Config(format!(
+            "paired errors need equal, non-zero lengths (got {n} and {})",
+            after.len()
+        )));
+    }
+    if before
+        .iter()
+        .chain(after)
+        .any(|v| !v.is_finite() || *v < 0.0)
+    {
+        return Err(GapError::Config("errors must be finite and >= 0".into()));
+    }
+    let shrinkage = ratio(before, after, 0..n);
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let mut draws: Vec<f64> = (0..resamples.max(1))
+        .map(|_| {
+            let idx: Vec<usize> = (0..n).map(|_| rng.random_range(0..n)).collect();
+            ratio(before, after, idx.into_iter())
+        })
+        .collect();
+    draws.sort_by(f64::total_cmp);
+    let q = |p: f64| draws[((p * (draws.len() - 1) as f64).round() as usize).min(draws.len() - 1)];
+    Ok(Comparison {
+        shrinkage,
+        ci95: [q(0.025), q(0.975)],
+    })
+}
+
+/// Thresholds of the verdict.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct VerdictRule {
+    /// Least shrinkage (fraction) that counts as a real improvement, besides a CI above 0.
+    pub min_shrinkage: f64,
+    /// Least shrinkage the generic probe must add on top of the best library effect to call the
+    /// gap `unknown`.
+    pub probe_margin: f64,
+}
+
+impl Default for VerdictRule {
+    fn default() -> Self {
+        VerdictRule {
+            min_shrinkage: 0.05,
+            probe_margin: 0.10,
+        }
+    }
+}
+
+/// The outcome of a diagnosis.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Verdict {
+    /// This library effect explains a significant part of the gap.
+    Effect(String),
+    /// Nothing significantly reduces held-out error: the gap is noise (or beyond any fit).
+    None,
+    /// A significant, learnable gap remains that no library effect explains.
+    Unknown,
+}
+
+impl Verdict {
+    /// `"<effect>"`, `"none"` or `"unknown"`.
+    pub fn label(&self) -> &str {
+        match self {
+            Verdict::Effect(e) => e,
+            Verdict::None => "none",
+            Verdict::Unknown => "unknown",
+        }
+    }
+}
+
+/// The verdict from each library candidate's comparison with the control, and the generic
+/// probe's comparison with the control and with the best significant library candidate.
+///
+/// 1. The best library candidate is the significant one with the largest shrinkage.
+/// 2. If the probe beats it significantly by at least `probe_margin` → `unknown`.
+/// 3. Else the best candidate, if any.
+/// 4. Else `unknown` if the probe alone is significant, otherwise `none`.
+pub fn decide(
+    library: &[(String, Comparison)],
+    probe_vs_control: Option<Comparison>,
+    probe_vs_best: Option<Comparison>,
+    rule: &VerdictRule,
+) -> Verdict {
+    let best = library
+        .iter()
+        .filter(|(_, c)| c.significant(rule.min_shrinkage))
+        .max_by(|a, b| a.1.shrinkage.total_cmp(&b.1.shrinkage));
+    match best {
+        Some((name, _)) => match probe_vs_best {
+            Some(p) if p.significant(rule.probe_margin) => Verdict::Unknown,
+            _ => Verdict::Effect(name.clone()),
+        },
+        None => match probe_vs_control {
+            Some(p) if p.significant(rule.min_shrinkage.max(rule.probe_margin)) => Verdict::Unknown,
+            _ => Verdict::None,
+        },
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn c(s: f64, lo: f64, hi: f64) -> Comparison {
+        Comparison {
+            shrinkage: s,
+            ci95: [lo, hi],
+        }
+    }
+
+    #[test]
+    fn bootstrap_is_deterministic_and_seed_dependent() {
+        let before = [2.0, 2.5, 1.0, 3.0, 2.2, 1.7];
+        let after = [1.5, 2.4, 1.1, 2.0, 2.1, 1.0];
+        let a = paired_shrinkage(&before, &after, 500, 3).unwrap();
+        let b = paired_shrinkage(&before, &after, 500, 3).unwrap();
+        let d = paired_shrinkage(&before, &after, 500, 4).unwrap();
+        assert_eq!(a, b);
+        assert_ne!(a.ci95, d.ci95);
+        // 1 - 10.1 / 12.4
+        assert!((a.shrinkage - (1.0 - 10.1 / 12.4)).abs() < 1e-12);
+        assert!(a.ci95[0] <= a.shrinkage && a.shrinkage <= a.ci95[1]);
+    }
+
+    #[test]
+    fn no_change_has_an_interval_around_zero() {
+        let before = [1.0, 2.0, 3.0, 4.0];
+        let after = [1.1, 1.9, 3.1, 3.9];
+        let c = paired_shrinkage(&before, &after, 500, 1).unwrap();
+        assert!(c.ci95[0] < 0.0 && c.ci95[1] > 0.0);
+        assert!(!c.significant(0.05));
+    }
+
+    #[test]
+    fn bad_input_is_an_error() {
+        assert!(paired_shrinkage(&[], &[], 10, 0).is_err());
+        assert!(paired_shrinkage(&[1.0], &[1.0, 2.0], 10, 0).is_err());
+        assert!(paired_shrinkage(&[f64::NAN], &[1.0], 10, 0).is_err());
+    }
+
+    #[test]
+    fn verdict_rule_cases() {
+        let rule = VerdictRule::default();
+        let lib = vec![
+            ("drag".to_string(), c(0.30, 0.20, 0.40)),
+            ("bending".to_string(), c(0.40, -0.05, 0.60)),
+            ("friction".to_string(), c(0.10, 0.02, 0.2)),
+        ];
+        // Bending has the largest shrinkage but its interval includes 0.
+        assert_eq!(
+            decide(&lib, None, None, &rule),
+            Verdict::Effect("drag".into())
+        );
+        // The probe adds a significant 30% on top of drag.
+        let big = c(0.3, 0.2, 0.4);
+        assert_eq!(decide(&lib, Some(big), Some(big), &rule), Verdict::Unknown);
+        // The probe adds too little.
+        let small = c(0.04, 0.01, 0.08);
+        assert_eq!(
+            decide(&lib, Some(big), Some(small), &rule),
+            Verdict::Effect("drag".into())
+        );
+        // Nothing significant anywhere: noise.
+        let weak = vec![("drag".to_string(), c(0.02, -0.01, 0.05))];
+        assert_eq!(
+            decide(&weak, Some(c(0.01, -0.02, 0.03)), None, &rule),
+            Verdict::None
+        );
+        // Only the probe helps.
+        assert_eq!(decide(&weak, Some(big), None, &rule), Verdict::Unknown);
+        assert_eq!(Verdict::Unknown.label(), "unknown");
+    }
+}

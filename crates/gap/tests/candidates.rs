@@ -1,0 +1,147 @@
+//! Each candidate effect changes a rollout at its starting strength and leaves it unchanged at
+//! its neutral parameters; the report serialises with the documented keys.
+
+use std::sync::Arc;
+
+use gap::{Candidate, MaterialFrame};
+use glam::Vec3;
+use springs::{Actions, Backbone, BackboneOptions, SimConfig, SpringParams, State};
+
+/// A 12 x 3 strip 2 cm above the ground, its first column held by gripper 0, which drags it
+/// sideways and lifts it, so ground contact, stretching and grasping all occur.
+fn scene() -> (Vec<Vec3>, Vec<i32>, Actions, State) {
+    let mut x = Vec::new();
+    let mut held = Vec::new();
+    for i in 0..12 {
+        for j in 0..3 {
+            x.push(Vec3::new(0.02 * i as f32, 0.02 * j as f32, 0.004));
+            held.push(if i == 0 { 0 } else { -1 });
+        }
+    }
+    let frames: Vec<Vec<Vec3>> = (0..16)
+        .map(|t| {
+            let t = t as f32;
+            vec![Vec3::new(
+                0.0 - 0.03 * t,
+                0.02 + 0.01 * t,
+                0.004 + 0.015 * t,
+            )]
+        })
+        .collect();
+    let actions = Actions::new(frames, vec![vec![true]; 16]).unwrap();
+    let state = State {
+        x: x.clone(),
+        v: vec![Vec3::new(0.3, 0.0, 0.0); x.len()],
+    };
+    (x, held, actions, state)
+}
+
+fn params() -> SpringParams {
+    SpringParams {
+        stiffness: 2000.0,
+        damping: 5.0,
+        threshold: 0.03,
+        max_springs: 12,
+        ground_friction: 0.4,
+    }
+}
+
+fn frame(x: &[Vec3]) -> MaterialFrame {
+    MaterialFrame::new(x, Vec3::new(0.1, 0.02, 0.05)).unwrap()
+}
+
+fn roll(effect: Option<(Candidate, Vec<f64>)>) -> Vec<Vec<Vec3>> {
+    let (x, held, actions, state) = scene();
+    let f = frame(&x);
+    let effects = effect
+        .map(|(c, v)| vec![c.effect(&v, &f)])
+        .unwrap_or_default();
+    let bb = Backbone::with_options(
+        &x,
+        &held,
+        params(),
+        SimConfig::default(),
+        BackboneOptions {
+            masses: None,
+            effects,
+        },
+    )
+    .unwrap();
+    bb.rollout(&state, &actions).unwrap().positions
+}
+
+fn max_diff(a: &[Vec<Vec3>], b: &[Vec<Vec3>]) -> f32 {
+    a.iter()
+        .flatten()
+        .zip(b.iter().flatten())
+        .map(|(p, q)| p.distance(*q))
+        .fold(0.0, f32::max)
+}
+
+#[test]
+fn every_candidate_changes_the_rollout_and_vanishes_at_neutral() {
+    let plain = roll(None);
+    for c in Candidate::LIBRARY
+        .into_iter()
+        .chain([Candidate::ExternalField])
+    {
+        let on = roll(Some((c, c.start())));
+        let off = roll(Some((c, c.neutral())));
+        let changed = max_diff(&plain, &on);
+        let neutral = max_diff(&plain, &off);
+        assert!(
+            changed > 1e-4,
+            "{}: start changes the rollout by only {changed} m",
+            c.name()
+        );
+        // Grasp slip's neutral is a very stiff grasp, which only approaches the kinematic one.
+        let tol = if c == Candidate::GraspSlip {
+            5e-3
+        } else {
+            1e-6
+        };
+        assert!(
+            neutral <= tol,
+            "{}: neutral differs by {neutral} m",
+            c.name()
+        );
+        assert_eq!(c.start().len(), c.parameters().len());
+        assert_eq!(c.neutral().len(), c.parameters().len());
+        assert_eq!(Candidate::parse(c.name()).unwrap(), c);
+    }
+    assert!(Candidate::parse("magnet").is_err());
+}
+
+#[test]
+fn material_axis_follows_particle_order() {
+    let x: Vec<Vec3> = (0..10)
+        .map(|i| Vec3::new(-0.1 * i as f32, 0.0, 0.0))
+        .collect();
+    let f = MaterialFrame::new(&x, Vec3::ZERO).unwrap();
+    let u: &Arc<Vec<f32>> = &f.coordinate;
+    assert!((u[0] + 1.0).abs() < 1e-5 && (u[9] - 1.0).abs() < 1e-5);
+    assert!(u.windows(2).all(|w| w[1] > w[0]));
+    assert!(MaterialFrame::new(&x[..1], Vec3::ZERO).is_err());
+}
+
+#[test]
+fn bad_effect_parameters_are_errors_not_panics() {
+    let (x, held, _, _) = scene();
+    let f = frame(&x);
+    for (c, v) in [
+        (Candidate::Drag, vec![f64::NAN]),
+        (Candidate::NonlinearElasticity, vec![10.0, 1.5]),
+        (Candidate::GraspSlip, vec![0.0, 1.0]),
+        (Candidate::ActuationDelay, vec![-1.0]),
+    ] {
+        let opts = BackboneOptions {
+            masses: None,
+            effects: vec![c.effect(&v, &f)],
+        };
+        assert!(
+            Backbone::with_options(&x, &held, params(), SimConfig::default(), opts).is_err(),
+            "{}",
+            c.name()
+        );
+    }
+}

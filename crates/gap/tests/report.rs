@@ -1,0 +1,83 @@
+//! A tiny diagnosis of the rope fixture: the report has the documented keys and the page is
+//! self-contained.
+
+use gap::{Candidate, DiagnoseConfig};
+use scene::{Protocol, Scene, SceneConfig};
+
+fn scenes(split: dataset::Split) -> Vec<Scene> {
+    let root = concat!(env!("CARGO_MANIFEST_DIR"), "/../../fixtures/rope");
+    let data = dataset::Dataset::open(root).unwrap();
+    data.split_indices(split)
+        .into_iter()
+        .map(|i| {
+            let ep = data.load_episode(i).unwrap();
+            let w = Protocol::Paper.window(ep.frames()).unwrap();
+            Scene::new(&data.meta, &ep, w, &SceneConfig::default()).unwrap()
+        })
+        .collect()
+}
+
+#[test]
+fn report_json_has_the_documented_schema() {
+    let train = scenes(dataset::Split::Train);
+    let val = scenes(dataset::Split::Val);
+    let cfg = DiagnoseConfig {
+        population: 2,
+        generations: 1,
+        samples: 1,
+        resamples: 50,
+        candidates: vec![Candidate::Drag, Candidate::ActuationDelay],
+        signature_scenes: 1,
+        ..DiagnoseConfig::default()
+    };
+    let base = springs::SpringParams {
+        threshold: 0.03,
+        max_springs: 20,
+        ..springs::SpringParams::reference_rope()
+    };
+    let d = gap::diagnose(&train, &val, &base, &cfg, &mut |_| {}).unwrap();
+    let v = serde_json::to_value(&d).unwrap();
+    let verdict = v["verdict"].as_str().unwrap();
+    assert!(
+        ["drag", "actuation-delay", "none", "unknown"].contains(&verdict),
+        "{verdict}"
+    );
+    let ranking = v["ranking"].as_array().unwrap();
+    assert_eq!(ranking.len(), 2);
+    for r in ranking {
+        for key in ["heldout_mde_before_cm", "heldout_mde_after_cm", "shrinkage"] {
+            assert!(r[key].as_f64().unwrap().is_finite(), "{key}");
+        }
+        assert!(r["effect"].is_string());
+        let ci = r["ci95"].as_array().unwrap();
+        assert_eq!(ci.len(), 2);
+        assert!(ci[0].as_f64().unwrap() <= ci[1].as_f64().unwrap());
+    }
+    // Sorted by shrinkage, best first.
+    assert!(ranking[0]["shrinkage"].as_f64() >= ranking[1]["shrinkage"].as_f64());
+    let w = &v["where"];
+    assert_eq!(
+        w["per_particle_cm"].as_array().unwrap().len(),
+        val[0].tracked
+    );
+    assert_eq!(
+        w["per_step_cm"].as_array().unwrap().len(),
+        val[0].truth.len()
+    );
+    assert_eq!(w["phases"].as_array().unwrap().len(), 3);
+    assert!(v["how_far"]["before"]["emd_cm"].as_f64().unwrap() > 0.0);
+    let html = gap::render_html(&d, "rope fixture");
+    assert!(html.starts_with("<!DOCTYPE html>") && html.contains("<svg"));
+    assert!(
+        !html.contains("src=") && !html.contains("href="),
+        "the page must not load anything"
+    );
+}
+
+#[test]
+fn empty_splits_are_errors() {
+    let val = scenes(dataset::Split::Val);
+    let base = springs::SpringParams::reference_rope();
+    let r = gap::diagnose(&[], &val, &base, &DiagnoseConfig::default(), &mut |_| {});
+    assert!(matches!(r, Err(gap::GapError::NoScenes(_))));
+}

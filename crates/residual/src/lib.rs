@@ -1,0 +1,45 @@
+//! PGRD's residual network on candle (CPU) and its training.
+//!
+//! A [`ResidualNet`] predicts, per particle, a bounded velocity residual that is added to the
+//! spring-mass backbone's prediction: `v = v_sim + Δv`, `x = x_sim + Δv dt`. It reads the
+//! current state, two history frames and the backbone's prediction (24 channels), encodes
+//! them with a serialized point transformer (Z-order / Hilbert curves, patch attention,
+//! grid pooling U-Net; or a PointNet++-style ablation), decodes with Fourier features of the
+//! position, and smooths over time with a per-particle transformer over its last `W` outputs
+//! and a learned gate: `Δv = s ((1 − g) r + g δ)`, `s = 0.1 m/s`.
+//!
+//! [`hybrid_rollout`] runs backbone and network together; [`Trainer`] trains on 5-step
+//! rollouts drawn from a [`TrainSet`]. Architecture, sizes, normalisation, costs and
+//! deviations from the paper: `docs/residual.md`.
+//!
+//! ```no_run
+//! # fn main() -> Result<(), residual::ResidualError> {
+//! use residual::{History, ModelConfig, ResidualNet, RolloutOptions, hybrid_rollout};
+//! let data = dataset::Dataset::open("fixtures/rope")?;
+//! let episode = data.load_episode(0)?;
+//! let window = scene::Protocol::Paper.window(episode.frames())?;
+//! let scene = scene::Scene::new(&data.meta, &episode, window, &Default::default())?;
+//! let backbone = scene.backbone(&springs::SpringParams::reference_rope(), &scene.sim_config(), Default::default())?;
+//! let history = History::from_episode(&scene, &episode, data.meta.fps)?;
+//! let net = ResidualNet::new(&ModelConfig::default(), 0)?;
+//! let out = hybrid_rollout(&net, &backbone, &scene, &history, RolloutOptions::default())?;
+//! assert_eq!(out.positions.len(), scene.window.steps);
+//! # Ok(()) }
+//! ```
+
+mod augment;
+mod config;
+mod encoder;
+mod error;
+mod model;
+mod nn;
+mod rollout;
+mod serialize;
+mod train;
+
+pub use augment::{rotate_history, rotate_scene};
+pub use config::{Combine, EncoderKind, ModelConfig, ResidualKind};
+pub use error::{ResidualError, Result};
+pub use model::{INPUTS, ResidualNet};
+pub use rollout::{History, HybridRollout, RolloutOptions, hybrid_rollout};
+pub use train::{Sample, StepStats, TrainConfig, TrainSet, Trainer};

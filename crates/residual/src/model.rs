@@ -1,0 +1,352 @@
+//! The residual network: encoder, Fourier decoder, temporal aggregator, and its parameters.
+
+use std::path::Path;
+
+use candle_core::{D, DType, Device, Tensor, Var};
+use candle_nn::{Linear, VarBuilder, VarMap};
+use glam::Vec3;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use crate::encoder::Encoder;
+use crate::nn::{Mlp, Norm, apply, linear, sigmoid, softmax};
+use crate::serialize::{CURVES, Structure};
+use crate::{Combine, ModelConfig, ResidualError, Result};
+
+/// Input channels per particle: x, v, x(t−1), x(t−2), v(t−1), v(t−2), x_sim, v_sim.
+pub const INPUTS: usize = 24;
+
+/// Hidden widths of the decoder MLP (the reference's 64 → 64 → 32 → 3).
+const HEAD: [usize; 3] = [64, 64, 32];
+
+/// Output layers start at this fraction of the default scale, so an untrained network adds a
+/// residual close to zero (the hybrid starts as the backbone) while every layer still receives
+/// a gradient.
+const OUTPUT_INIT_GAIN: f64 = 0.01;
+
+#[derive(Debug)]
+enum Head {
+    /// `[x, sin 2^k x, cos 2^k x]` ⊕ feature → Linear → Linear+ReLU → Linear+ReLU → Linear.
+    Fourier { layers: [Linear; 4], bands: usize },
+    /// Ablation: one linear layer on the encoder feature.
+    Linear(Linear),
+}
+
+/// One post-norm transformer layer of the temporal aggregator.
+#[derive(Debug)]
+struct TemporalLayer {
+    qkv: Linear,
+    proj: Linear,
+    n1: Norm,
+    ff: Mlp,
+    n2: Norm,
+}
+
+#[derive(Debug)]
+struct Temporal {
+    embed: Linear,
+    pe: Tensor,
+    layers: Vec<TemporalLayer>,
+    heads: usize,
+    delta: Linear,
+    gate: Option<Linear>,
+}
+
+/// PGRD's residual network (see `docs/residual.md` for the architecture and sizes).
+///
+/// Parameters live in a `VarMap`; [`ResidualNet::save`] writes them as safetensors with the
+/// configuration as JSON beside them, [`ResidualNet::load`] reads both back.
+pub struct ResidualNet {
+    cfg: ModelConfig,
+    varmap: VarMap,
+    encoder: Encoder,
+    head: Head,
+    temporal: Option<Temporal>,
+    device: Device,
+}
+
+impl std::fmt::Debug for ResidualNet {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ResidualNet")
+            .field("cfg", &self.cfg)
+            .field("parameters", &self.parameter_count())
+            .finish_non_exhaustive()
+    }
+}
+
+fn sinusoid(w: usize, d: usize, dev: &Device) -> Result<Tensor> {
+    let mut pe = vec![0f32; w * d];
+    for t in 0..w {
+        for i in 0..d {
+            let freq = 1.0 / 10000f64.powf((2 * (i / 2)) as f64 / d as f64);
+            let a = t as f64 * freq;
+            pe[t * d + i] = if i % 2 == 0 { a.sin() } else { a.cos() } as f32;
+        }
+    }
+    Ok(Tensor::from_vec(pe, (w, d), dev)?)
+}
+
+impl ResidualNet {
+    /// A freshly initialised network; the same seed gives the same parameters.
+    pub fn new(cfg: &ModelConfig, seed: u64) -> Result<Self> {
+        cfg.validate()?;
+        let device = Device::Cpu;
+        let varmap = VarMap::new();
+        let vb = VarBuilder::from_varmap(&varmap, DType::F32, &device);
+        let encoder = Encoder::new(INPUTS, cfg, vb.pp("encoder"))?;
+        let f = cfg.feature_dim();
+        let head = if cfg.decoder {
+            let fourier = 3 + 6 * cfg.fourier_bands;
+            let vb = vb.pp("decoder");
+            Head::Fourier {
+                layers: [
+                    linear(fourier + f, HEAD[0], vb.pp("l0"))?,
+                    linear(HEAD[0], HEAD[1], vb.pp("l1"))?,
+                    linear(HEAD[1], HEAD[2], vb.pp("l2"))?,
+                    linear(HEAD[2], 3, vb.pp("out"))?,
+                ],
+                bands: cfg.fourier_bands,
+            }
+        } else {
+            Head::Linear(linear(f, 3, vb.pp("decoder.out"))?)
+        };
+        let temporal = if cfg.combine == Combine::None {
+            None
+        } else {
+            let d = cfg.temporal_dim;
+            let vb = vb.pp("temporal");
+            let layers = (0..cfg.temporal_layers)
+                .map(|l| {
+                    let vb = vb.pp(format!("layer{l}"));
+                    Ok(TemporalLayer {
+                        qkv: linear(d, 3 * d, vb.pp("qkv"))?,
+                        proj: linear(d, d, vb.pp("proj"))?,
+                        n1: Norm::new(d, vb.pp("norm1"))?,
+                        ff: Mlp::new(d, cfg.temporal_ff, d, vb.pp("ff"))?,
+                        n2: Norm::new(d, vb.pp("norm2"))?,
+                    })
+                })
+                .collect::<Result<Vec<_>>>()?;
+            Some(Temporal {
+                embed: linear(3, d, vb.pp("embed"))?,
+                pe: sinusoid(cfg.window, d, &device)?,
+                layers,
+                heads: cfg.temporal_heads,
+                delta: linear(d, 3, vb.pp("delta.out"))?,
+                gate: if cfg.combine == Combine::Gate {
+                    Some(linear(d, 3, vb.pp("gate"))?)
+                } else {
+                    None
+                },
+            })
+        };
+        let net = ResidualNet {
+            cfg: cfg.clone(),
+            varmap,
+            encoder,
+            head,
+            temporal,
+            device,
+        };
+        net.init(seed)?;
+        Ok(net)
+    }
+
+    /// Seeded re-initialisation (candle's own initialisers draw from an unseeded generator):
+    /// weights and biases uniform in ±1/√fan_in, output layers scaled by `OUTPUT_INIT_GAIN`,
+    /// norms at identity.
+    fn init(&self, seed: u64) -> Result<()> {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let vars = self.named_vars();
+        let fan_in: std::collections::HashMap<String, usize> = vars
+            .iter()
+            .filter(|(n, v)| n.ends_with(".weight") && v.rank() == 2)
+            .map(|(n, v)| (n.trim_end_matches(".weight").to_string(), v.dims()[1]))
+            .collect();
+        for (name, var) in &vars {
+            let (layer, kind) = name.rsplit_once('.').unwrap_or(("", name));
+            if kind != "weight" && kind != "bias" {
+                continue;
+            }
+            let fan = fan_in.get(layer).copied().unwrap_or(1).max(1);
+            let mut b = 1.0 / (fan as f64).sqrt();
+            if layer.ends_with(".out") || layer.ends_with("gate") {
+                b *= OUTPUT_INIT_GAIN;
+            }
+            let n = var.elem_count();
+            let vals: Vec<f32> = (0..n).map(|_| rng.random_range(-b..b) as f32).collect();
+            var.set(&Tensor::from_vec(vals, var.shape(), &self.device)?)?;
+        }
+        Ok(())
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &ModelConfig {
+        &self.cfg
+    }
+
+    /// Every trainable tensor with its name, sorted by name (a fixed order keeps gradient
+    /// norms and optimiser updates reproducible).
+    pub fn named_vars(&self) -> Vec<(String, Var)> {
+        let data = self.varmap.data().lock().unwrap_or_else(|e| e.into_inner());
+        let mut v: Vec<(String, Var)> = data.iter().map(|(k, v)| (k.clone(), v.clone())).collect();
+        v.sort_by(|a, b| a.0.cmp(&b.0));
+        v
+    }
+
+    /// Number of scalar parameters.
+    pub fn parameter_count(&self) -> usize {
+        self.named_vars().iter().map(|(_, v)| v.elem_count()).sum()
+    }
+
+    /// The device tensors live on (CPU).
+    pub fn device(&self) -> &Device {
+        &self.device
+    }
+
+    /// Writes the parameters to `path` (safetensors) and the configuration to `path` with the
+    /// extension `json`.
+    pub fn save(&self, path: &Path) -> Result<()> {
+        self.varmap.save(path)?;
+        let json = path.with_extension("json");
+        let text =
+            serde_json::to_string_pretty(&self.cfg).map_err(|source| ResidualError::Json {
+                path: json.display().to_string(),
+                source,
+            })?;
+        dataset::write_atomic(&json, text.as_bytes()).map_err(ResidualError::Dataset)?;
+        Ok(())
+    }
+
+    /// Reads a network written by [`ResidualNet::save`].
+    pub fn load(path: &Path) -> Result<Self> {
+        let json = path.with_extension("json");
+        let text = std::fs::read_to_string(&json).map_err(|source| ResidualError::Io {
+            path: json.display().to_string(),
+            source,
+        })?;
+        let cfg: ModelConfig =
+            serde_json::from_str(&text).map_err(|source| ResidualError::Json {
+                path: json.display().to_string(),
+                source,
+            })?;
+        let mut net = ResidualNet::new(&cfg, 0)?;
+        net.varmap.load(path)?;
+        Ok(net)
+    }
+
+    /// One-shot residual (m/s, `(N, 3)`) for features `(N, INPUTS)` at centred positions
+    /// `pos` (m), with an empty temporal window (as at a rollout's first step) and the curves
+    /// in their default order.
+    pub fn predict(&self, feats: &Tensor, pos: &[Vec3]) -> Result<Tensor> {
+        if feats.dims() != [pos.len(), INPUTS] {
+            return Err(ResidualError::Input(format!(
+                "features {:?} for {} positions",
+                feats.dims(),
+                pos.len()
+            )));
+        }
+        let c = &self.cfg;
+        let st = Structure::new(
+            pos,
+            c.enc_channels.len(),
+            c.grid_m,
+            c.pool_grid_m,
+            c.patch,
+            &self.device,
+        )?;
+        let flat: Vec<f32> = pos.iter().flat_map(|p| p.to_array()).collect();
+        let p = Tensor::from_vec(flat, (pos.len(), 3), &self.device)?;
+        let r = self.decode(feats, &p, &st, [0, 1, 2, 3])?;
+        self.aggregate(&[r])
+    }
+
+    /// Decoder output `r ∈ (−1, 1)^3` per particle from the `(N, INPUTS)` features and the
+    /// centred positions `(N, 3)`.
+    pub(crate) fn decode(
+        &self,
+        feats: &Tensor,
+        pos: &Tensor,
+        st: &Structure,
+        curves: [usize; CURVES],
+    ) -> Result<Tensor> {
+        let f = self.encoder.forward(feats, st, curves)?;
+        let out = match &self.head {
+            Head::Fourier { layers, bands } => {
+                let mut parts = vec![pos.clone()];
+                for k in 0..*bands {
+                    let s = (pos * f64::from(1u32 << k))?;
+                    parts.push(s.sin()?);
+                    parts.push(s.cos()?);
+                }
+                parts.push(f);
+                let x = Tensor::cat(&parts, 1)?;
+                let x = apply(&layers[0], &x)?;
+                let x = apply(&layers[1], &x)?.relu()?;
+                let x = apply(&layers[2], &x)?.relu()?;
+                apply(&layers[3], &x)?
+            }
+            Head::Linear(l) => apply(l, &f)?,
+        };
+        Ok(out.tanh()?)
+    }
+
+    /// The bounded residual `Δ (N, 3)` in m/s from the window of decoder outputs (oldest
+    /// first; its last entry is the current `r`; shorter windows are left-padded with copies
+    /// of the newest).
+    pub(crate) fn aggregate(&self, window: &[Tensor]) -> Result<Tensor> {
+        let s = f64::from(self.cfg.residual_scale);
+        let r = window
+            .last()
+            .ok_or_else(|| ResidualError::Input("empty window".into()))?;
+        let Some(t) = &self.temporal else {
+            return Ok((r * s)?);
+        };
+        let w = self.cfg.window;
+        let tail = &window[window.len().saturating_sub(w)..];
+        let mut tokens: Vec<Tensor> = vec![r.clone(); w - tail.len()];
+        tokens.extend(tail.iter().cloned());
+        let x = Tensor::stack(&tokens, 1)?; // (N, W, 3)
+        let mut h = apply(&t.embed, &x)?.broadcast_add(&t.pe)?;
+        let n = h.dim(0)?;
+        let d = self.cfg.temporal_dim;
+        let (heads, hd) = (t.heads, d / t.heads);
+        for (l, layer) in t.layers.iter().enumerate() {
+            let last = l + 1 == t.layers.len();
+            let qkv = apply(&layer.qkv, &h)?.reshape((n, w, 3, heads, hd))?;
+            let part = |i: usize| -> Result<Tensor> {
+                Ok(qkv.narrow(2, i, 1)?.squeeze(2)?.permute((0, 2, 1, 3))?)
+            };
+            // Only the newest token feeds the gate, so the last layer computes just that query.
+            let (mut q, k, v) = (part(0)?, part(1)?, part(2)?);
+            let mut resid = h.clone();
+            if last {
+                q = q.narrow(2, w - 1, 1)?;
+                resid = h.narrow(1, w - 1, 1)?;
+            }
+            let wq = q.dim(2)?;
+            // Tiny per-particle attention as broadcast products: one big element-wise op is far
+            // cheaper on CPU than N·heads separate 5×5 matmuls.
+            let scores = (q
+                .unsqueeze(3)?
+                .broadcast_mul(&k.unsqueeze(2)?)?
+                .sum(D::Minus1)?
+                * (1.0 / (hd as f64).sqrt()))?;
+            let a = softmax(&scores)?;
+            let o = a.unsqueeze(4)?.broadcast_mul(&v.unsqueeze(2)?)?.sum(3)?;
+            let o = o.permute((0, 2, 1, 3))?.reshape((n, wq, d))?;
+            let x = layer.n1.forward(&(resid + apply(&layer.proj, &o)?)?)?;
+            h = layer.n2.forward(&(&x + layer.ff.forward(&x)?)?)?;
+        }
+        let last = h.narrow(1, h.dim(1)? - 1, 1)?.squeeze(1)?;
+        let delta = apply(&t.delta, &last)?.tanh()?;
+        match &t.gate {
+            Some(gate) => {
+                let g = sigmoid(&apply(gate, &last)?)?;
+                let keep = (g.ones_like()? - &g)?;
+                Ok((((keep * r)? + (g * delta)?)? * s)?)
+            }
+            None => Ok(((r + delta)? * (s / 2.0))?),
+        }
+    }
+}

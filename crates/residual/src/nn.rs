@@ -1,0 +1,83 @@
+//! Small layers built only from ops that have a backward pass in candle 0.11 (the fused
+//! LayerNorm and `softmax_last_dim` silently drop gradients; see `docs/residual.md`).
+
+use candle_core::{D, Module, Tensor};
+use candle_nn::{Init, Linear, VarBuilder};
+
+use crate::Result;
+
+/// Layer normalisation over the last dimension, composed of differentiable ops.
+#[derive(Debug, Clone)]
+pub(crate) struct Norm {
+    gamma: Tensor,
+    beta: Tensor,
+}
+
+impl Norm {
+    pub fn new(dim: usize, vb: VarBuilder<'_>) -> Result<Self> {
+        Ok(Norm {
+            gamma: vb.get_with_hints(dim, "gamma", Init::Const(1.0))?,
+            beta: vb.get_with_hints(dim, "beta", Init::Const(0.0))?,
+        })
+    }
+
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        Ok(candle_nn::ops::layer_norm_slow(
+            x,
+            &self.gamma,
+            &self.beta,
+            1e-5,
+        )?)
+    }
+}
+
+/// A linear layer `in → out` with bias.
+pub(crate) fn linear(i: usize, o: usize, vb: VarBuilder<'_>) -> Result<Linear> {
+    Ok(candle_nn::linear(i, o, vb)?)
+}
+
+/// Applies a linear layer to a tensor of any rank ≥ 2 (flattening the leading dims, because a
+/// single large matmul is far faster on CPU than candle's per-batch gemm calls).
+pub(crate) fn apply(l: &Linear, x: &Tensor) -> Result<Tensor> {
+    let dims = x.dims();
+    if dims.len() == 2 {
+        return Ok(l.forward(x)?);
+    }
+    let last = dims[dims.len() - 1];
+    let flat = x.reshape(((), last))?;
+    let y = l.forward(&flat)?;
+    let mut out = dims.to_vec();
+    let n = out.len();
+    out[n - 1] = y.dim(1)?;
+    Ok(y.reshape(out)?)
+}
+
+/// Logistic sigmoid from differentiable primitives.
+pub(crate) fn sigmoid(x: &Tensor) -> Result<Tensor> {
+    Ok((x.neg()?.exp()? + 1.0)?.recip()?)
+}
+
+/// Softmax over the last dimension with a backward pass.
+pub(crate) fn softmax(x: &Tensor) -> Result<Tensor> {
+    Ok(candle_nn::ops::softmax(x, D::Minus1)?)
+}
+
+/// Two-layer perceptron `C → hidden → C'` with ReLU (GELU costs several times more on CPU).
+#[derive(Debug, Clone)]
+pub(crate) struct Mlp {
+    a: Linear,
+    b: Linear,
+}
+
+impl Mlp {
+    pub fn new(i: usize, h: usize, o: usize, vb: VarBuilder<'_>) -> Result<Self> {
+        Ok(Mlp {
+            a: linear(i, h, vb.pp("fc1"))?,
+            b: linear(h, o, vb.pp("fc2"))?,
+        })
+    }
+
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        apply(&self.b, &apply(&self.a, x)?.relu()?)
+    }
+}

@@ -1,0 +1,280 @@
+//! Hybrid rollouts: backbone step, then the network's bounded residual, fed back as the next
+//! state. Used for evaluation (detached, one step at a time) and for training (one graph
+//! through all steps of a segment).
+
+use candle_core::{DType, Tensor};
+use dataset::Episode;
+use glam::Vec3;
+use scene::Scene;
+use springs::{Backbone, SimError, State};
+
+use crate::model::{INPUTS, ResidualNet};
+use crate::serialize::{CURVES, Structure};
+use crate::{ResidualError, ResidualKind, Result};
+
+/// Hybrid positions farther than this from the object's centre mean the rollout diverged, m.
+const DIVERGED_M: f32 = 100.0;
+
+/// The two frames before a rollout's start (the network's history inputs).
+#[derive(Clone, Debug, PartialEq)]
+pub struct History {
+    /// Positions at `t − 1` and `t − 2`, m.
+    pub x: [Vec<Vec3>; 2],
+    /// Velocities at `t − 1` and `t − 2`, m/s.
+    pub v: [Vec<Vec3>; 2],
+}
+
+impl History {
+    /// Constant-velocity extrapolation backwards from `state` (used where no earlier frame
+    /// exists: hidden or interior particles, or a start at frame 1).
+    pub fn extrapolated(state: &State, dt: f32) -> Self {
+        let back = |k: f32| {
+            state
+                .x
+                .iter()
+                .zip(&state.v)
+                .map(|(x, v)| *x - *v * (k * dt))
+                .collect()
+        };
+        History {
+            x: [back(1.0), back(2.0)],
+            v: [state.v.clone(), state.v.clone()],
+        }
+    }
+
+    /// History of `scene` read from its episode: tracked particles take the recorded frames
+    /// `start − 1` and `start − 2` (velocities by finite difference), the rest is extrapolated.
+    pub fn from_episode(scene: &Scene, episode: &Episode, fps: f32) -> Result<Self> {
+        let start = scene.window.start;
+        if episode.particles() != scene.tracked || start >= episode.frames() {
+            return Err(ResidualError::Input(format!(
+                "episode has {} particles / {} frames, scene tracks {} from frame {start}",
+                episode.particles(),
+                episode.frames(),
+                scene.tracked
+            )));
+        }
+        let mut h = Self::extrapolated(&scene.init, 1.0 / fps);
+        let frame = |t: usize| episode.frame(t);
+        for i in 0..scene.tracked {
+            if start >= 1 {
+                h.x[0][i] = frame(start - 1)[i];
+            }
+            if start >= 2 {
+                h.x[1][i] = frame(start - 2)[i];
+                h.v[0][i] = (h.x[0][i] - h.x[1][i]) * fps;
+                h.v[1][i] = h.v[0][i];
+            } else {
+                h.x[1][i] = h.x[0][i] - h.v[0][i] / fps;
+            }
+            if start >= 3 {
+                h.v[1][i] = (h.x[1][i] - frame(start - 3)[i]) * fps;
+            }
+        }
+        Ok(h)
+    }
+}
+
+/// What a hybrid rollout returns.
+#[derive(Debug)]
+pub struct HybridRollout {
+    /// Positions of all simulated particles after each step, m.
+    pub positions: Vec<Vec<Vec3>>,
+    /// Sum over steps of the mean squared distance to the truth (cm²), with its graph when
+    /// the rollout was run for training.
+    pub loss: Option<Tensor>,
+}
+
+/// Options of [`hybrid_rollout`].
+#[derive(Clone, Copy, Debug)]
+pub struct RolloutOptions {
+    /// Steps to run (at most the scene's window).
+    pub steps: usize,
+    /// Keep the autograd graph through all steps and compute the loss.
+    pub train: bool,
+    /// Curve each transformer block attends along (`curves[b % 4]`).
+    pub curves: [usize; CURVES],
+}
+
+impl Default for RolloutOptions {
+    fn default() -> Self {
+        RolloutOptions {
+            steps: usize::MAX,
+            train: false,
+            curves: [0, 1, 2, 3],
+        }
+    }
+}
+
+fn to_tensor(v: &[Vec3], dev: &candle_core::Device) -> Result<Tensor> {
+    let flat: Vec<f32> = v.iter().flat_map(|p| p.to_array()).collect();
+    Ok(Tensor::from_vec(flat, (v.len(), 3), dev)?)
+}
+
+fn to_vec3(t: &Tensor) -> Result<Vec<Vec3>> {
+    let flat: Vec<f32> = t.flatten_all()?.to_vec1()?;
+    Ok(flat
+        .chunks_exact(3)
+        .map(|c| Vec3::new(c[0], c[1], c[2]))
+        .collect())
+}
+
+/// Runs the hybrid model (backbone + residual network) over `scene`'s window.
+///
+/// Each step: the backbone advances the detached state; the network sees the current state,
+/// two history frames and the backbone's prediction (positions centred on the current mean,
+/// velocities times `velocity_scale`) and returns a residual bounded by `residual_scale` per
+/// axis; particles held by a closed gripper get none. Returns [`ResidualError::Diverged`] when
+/// the state stops being finite and bounded.
+pub fn hybrid_rollout(
+    net: &ResidualNet,
+    backbone: &Backbone,
+    scene: &Scene,
+    history: &History,
+    opts: RolloutOptions,
+) -> Result<HybridRollout> {
+    let cfg = net.config();
+    let dev = net.device().clone();
+    let n = scene.particles();
+    let steps = opts.steps.min(scene.window.steps);
+    if backbone.num_particles() != n || history.x.iter().chain(&history.v).any(|h| h.len() != n) {
+        return Err(ResidualError::Input(format!(
+            "scene has {n} particles, backbone {}, history {}",
+            backbone.num_particles(),
+            history.x[0].len()
+        )));
+    }
+    let dt = scene.sim_config().step_dt;
+    let vs = f64::from(cfg.velocity_scale);
+    let mut scratch = backbone.scratch();
+    let mut sim = scene.init.clone();
+    let mut x = to_tensor(&sim.x, &dev)?;
+    let mut v = to_tensor(&sim.v, &dev)?;
+    let mut hx = [
+        to_tensor(&history.x[0], &dev)?,
+        to_tensor(&history.x[1], &dev)?,
+    ];
+    let mut hv = [
+        to_tensor(&history.v[0], &dev)?,
+        to_tensor(&history.v[1], &dev)?,
+    ];
+    let mut window: Vec<Tensor> = Vec::with_capacity(cfg.window);
+    let mut positions = Vec::with_capacity(steps);
+    let mut loss: Option<Tensor> = None;
+    for step in 0..steps {
+        let (Some(from), Some(to)) = (scene.actions.frame(step), scene.actions.frame(step + 1))
+        else {
+            return Err(ResidualError::Input(format!(
+                "no action frame for step {step}"
+            )));
+        };
+        let current = sim.x.clone();
+        backbone
+            .step(&mut sim, from, to, &mut scratch)
+            .map_err(|e| match e {
+                SimError::NonFinite { .. } => ResidualError::Diverged {
+                    step,
+                    what: e.to_string(),
+                },
+                e => ResidualError::Sim(e),
+            })?;
+        let centre = current.iter().sum::<Vec3>() / n.max(1) as f32;
+        let c = Tensor::from_slice(&centre.to_array(), (1, 3), &dev)?;
+        let x_sim = to_tensor(&sim.x, &dev)?;
+        let v_sim = to_tensor(&sim.v, &dev)?;
+        let pos = x.broadcast_sub(&c)?;
+        let feats = Tensor::cat(
+            &[
+                &pos,
+                &(&v * vs)?,
+                &hx[0].broadcast_sub(&c)?,
+                &hx[1].broadcast_sub(&c)?,
+                &(&hv[0] * vs)?,
+                &(&hv[1] * vs)?,
+                &x_sim.broadcast_sub(&c)?,
+                &(&v_sim * vs)?,
+            ],
+            1,
+        )?;
+        debug_assert_eq!(feats.dim(1)?, INPUTS);
+        let centred: Vec<Vec3> = current.iter().map(|p| *p - centre).collect();
+        let st = Structure::new(
+            &centred,
+            cfg.enc_channels.len(),
+            cfg.grid_m,
+            cfg.pool_grid_m,
+            cfg.patch,
+            &dev,
+        )?;
+        let r = net.decode(&feats, &pos, &st, opts.curves)?;
+        window.push(r);
+        if window.len() > cfg.window {
+            window.remove(0);
+        }
+        let free: Vec<f32> = scene
+            .held
+            .iter()
+            .map(|&g| {
+                let held = g >= 0 && from.closed.get(g as usize).copied().unwrap_or(false);
+                if held { 0.0 } else { 1.0 }
+            })
+            .collect();
+        let free = Tensor::from_vec(free, (n, 1), &dev)?;
+        let delta = net.aggregate(&window)?.broadcast_mul(&free)?;
+        let (nx, nv) = match cfg.residual {
+            ResidualKind::Velocity => ((&x_sim + (&delta * f64::from(dt))?)?, (&v_sim + &delta)?),
+            ResidualKind::Position => ((&x_sim + (&delta * f64::from(dt))?)?, v_sim.clone()),
+        };
+        let (nx, nv) = if opts.train {
+            (nx, nv)
+        } else {
+            (nx.detach(), nv.detach())
+        };
+        if !opts.train {
+            for w in &mut window {
+                *w = w.detach();
+            }
+        }
+        sim.x = to_vec3(&nx)?;
+        sim.v = to_vec3(&nv)?;
+        if let Some(i) = sim.x.iter().zip(&sim.v).position(|(p, q)| {
+            !(p.is_finite() && q.is_finite()) || (*p - centre).length() > DIVERGED_M
+        }) {
+            return Err(ResidualError::Diverged {
+                step,
+                what: format!("particle {i} at {:?} m, {:?} m/s", sim.x[i], sim.v[i]),
+            });
+        }
+        if opts.train {
+            let term = step_loss(scene, step, &nx)?;
+            loss = Some(match loss {
+                Some(l) => (l + term)?,
+                None => term,
+            });
+        }
+        let [hx0, _] = hx;
+        let [hv0, _] = hv;
+        hx = [x, hx0];
+        hv = [v, hv0];
+        x = nx;
+        v = nv;
+        positions.push(sim.x.clone());
+    }
+    Ok(HybridRollout { positions, loss })
+}
+
+/// Mean squared distance (cm²) between the tracked particles the tracker saw and the truth.
+fn step_loss(scene: &Scene, step: usize, x: &Tensor) -> Result<Tensor> {
+    let dev = x.device();
+    let vis = &scene.visible[step];
+    let all = !vis.iter().any(|v| *v);
+    let idx: Vec<u32> = (0..scene.tracked)
+        .filter(|&i| all || vis[i])
+        .map(|i| i as u32)
+        .collect();
+    let truth: Vec<Vec3> = idx.iter().map(|&i| scene.truth[step][i as usize]).collect();
+    let ids = Tensor::from_slice(&idx, idx.len(), dev)?;
+    let diff = (x.index_select(&ids, 0)? - to_tensor(&truth, dev)?)?;
+    let m = diff.sqr()?.sum_all()?.to_dtype(DType::F32)?;
+    Ok((m * (1e4 / idx.len().max(1) as f64))?)
+}

@@ -1,0 +1,324 @@
+//! Space-filling-curve serialization and grid pooling of a point cloud (no gradients: these
+//! are index computations on the current positions).
+//!
+//! Point Transformer V3 sorts points along Z-order and Hilbert curves (and their transposed
+//! variants, x and y swapped) of a voxel grid, attends inside fixed-size patches of that order,
+//! and pools by merging the points of coarser grid cells. Ties inside one cell are broken by the
+//! exact coordinates, so every order depends on positions only and per-particle outputs are
+//! equivariant to the input order (up to float summation order).
+
+use std::collections::BTreeMap;
+
+use candle_core::{Device, Tensor};
+use glam::Vec3;
+
+use crate::Result;
+
+/// Bits per axis of the curve codes (cells beyond 2^16 per axis are clamped).
+const BITS: u32 = 16;
+
+/// The four curves PTv3 uses.
+pub(crate) const CURVES: usize = 4;
+
+/// Interleaves the low `BITS` bits of `a`, `b`, `c` (a in the most significant slot).
+fn interleave(a: u32, b: u32, c: u32) -> u64 {
+    let mut code = 0u64;
+    for bit in (0..BITS).rev() {
+        for v in [a, b, c] {
+            code = (code << 1) | u64::from((v >> bit) & 1);
+        }
+    }
+    code
+}
+
+/// Hilbert index of a 3-D cell, after John Skilling's "transpose" formulation
+/// (AIP Conf. Proc. 707, 2004): undo excess work, Gray-encode, then interleave.
+fn hilbert(cell: [u32; 3]) -> u64 {
+    let mut x = cell;
+    let m = 1u32 << (BITS - 1);
+    let mut q = m;
+    while q > 1 {
+        let p = q - 1;
+        for i in 0..3 {
+            if x[i] & q != 0 {
+                x[0] ^= p;
+            } else {
+                let t = (x[0] ^ x[i]) & p;
+                x[0] ^= t;
+                x[i] ^= t;
+            }
+        }
+        q >>= 1;
+    }
+    for i in 1..3 {
+        x[i] ^= x[i - 1];
+    }
+    let mut t = 0;
+    q = m;
+    while q > 1 {
+        if x[2] & q != 0 {
+            t ^= q - 1;
+        }
+        q >>= 1;
+    }
+    for v in &mut x {
+        *v ^= t;
+    }
+    interleave(x[0], x[1], x[2])
+}
+
+fn cells(pos: &[Vec3], grid: f32) -> Vec<[u32; 3]> {
+    let min = pos
+        .iter()
+        .fold(Vec3::splat(f32::INFINITY), |a, p| a.min(*p));
+    let max_cell = ((1u32 << BITS) - 1) as f32;
+    pos.iter()
+        .map(|p| {
+            let c = ((*p - min) / grid)
+                .floor()
+                .clamp(Vec3::ZERO, Vec3::splat(max_cell));
+            [c.x as u32, c.y as u32, c.z as u32]
+        })
+        .collect()
+}
+
+/// Curve code of each point: 0 Z-order, 1 transposed Z-order, 2 Hilbert, 3 transposed Hilbert.
+pub(crate) fn curve_codes(pos: &[Vec3], grid: f32, curve: usize) -> Vec<u64> {
+    cells(pos, grid)
+        .into_iter()
+        .map(|[a, b, c]| match curve {
+            0 => interleave(a, b, c),
+            1 => interleave(b, a, c),
+            2 => hilbert([a, b, c]),
+            _ => hilbert([b, a, c]),
+        })
+        .collect()
+}
+
+/// Point indices sorted along a curve; ties broken by exact coordinates.
+pub(crate) fn curve_order(pos: &[Vec3], grid: f32, curve: usize) -> Vec<u32> {
+    let codes = curve_codes(pos, grid, curve);
+    let mut idx: Vec<u32> = (0..pos.len() as u32).collect();
+    idx.sort_by(|&i, &j| {
+        let (a, b) = (pos[i as usize], pos[j as usize]);
+        codes[i as usize]
+            .cmp(&codes[j as usize])
+            .then(a.x.total_cmp(&b.x))
+            .then(a.y.total_cmp(&b.y))
+            .then(a.z.total_cmp(&b.z))
+    });
+    idx
+}
+
+/// One serialization of one level, as index tensors.
+#[derive(Debug)]
+pub(crate) struct Order {
+    /// Points in curve order, padded to `patches * patch` by repeating the last one.
+    pub gather: Tensor,
+    /// Position of each point in the curve order (to scatter patch outputs back).
+    pub inverse: Tensor,
+    /// Curve predecessor and successor of each point (itself at the ends): the conditional
+    /// positional encoding's neighbourhood.
+    pub prev: Tensor,
+    /// See `prev`.
+    pub next: Tensor,
+    /// Number of patches and their size.
+    pub patches: usize,
+    /// Points per patch.
+    pub patch: usize,
+    /// Additive attention mask `(patches, 1, 1, patch)`: −1e9 on padding keys; `None` without padding.
+    pub mask: Option<Tensor>,
+}
+
+fn u32_tensor(v: &[u32], dev: &Device) -> Result<Tensor> {
+    Ok(Tensor::from_slice(v, v.len(), dev)?)
+}
+
+impl Order {
+    fn new(order: &[u32], max_patch: usize, dev: &Device) -> Result<Self> {
+        let n = order.len();
+        let patches = n.div_ceil(max_patch).max(1);
+        // Balanced patches: at most `patches - 1` padding slots in all.
+        let patch = n.div_ceil(patches);
+        let padded = patches * patch;
+        let mut gather = order.to_vec();
+        gather.resize(padded, *order.last().unwrap_or(&0));
+        let mut inverse = vec![0u32; n];
+        let (mut prev, mut next) = (vec![0u32; n], vec![0u32; n]);
+        for (k, &i) in order.iter().enumerate() {
+            inverse[i as usize] = k as u32;
+            prev[i as usize] = order[k.saturating_sub(1)];
+            next[i as usize] = order[(k + 1).min(n - 1)];
+        }
+        let mask = if padded > n {
+            let m: Vec<f32> = (0..padded)
+                .map(|k| if k < n { 0.0 } else { -1e9 })
+                .collect();
+            Some(Tensor::from_vec(m, (patches, 1, 1, patch), dev)?)
+        } else {
+            None
+        };
+        Ok(Order {
+            gather: u32_tensor(&gather, dev)?,
+            inverse: u32_tensor(&inverse, dev)?,
+            prev: u32_tensor(&prev, dev)?,
+            next: u32_tensor(&next, dev)?,
+            patches,
+            patch,
+            mask,
+        })
+    }
+}
+
+/// The points of one resolution level with their four serializations.
+#[derive(Debug)]
+pub(crate) struct Level {
+    /// Orders, indexed by curve.
+    pub orders: Vec<Order>,
+    /// Positions (point or cluster means), `(n, 3)`, m.
+    pub pos: Tensor,
+}
+
+/// Merging of a level's points into the cells of a coarser grid.
+#[derive(Debug)]
+pub(crate) struct Pooling {
+    /// Cluster of each fine point.
+    pub cluster: Tensor,
+    /// `1 / members` per cluster, `(clusters, 1)`.
+    pub inv_count: Tensor,
+    /// Number of clusters.
+    pub clusters: usize,
+}
+
+/// Cell clusters of `pos` on a grid of `grid` m; returns (cluster per point, cluster means,
+/// member counts). Clusters are numbered in lexicographic cell order.
+pub(crate) fn grid_clusters(pos: &[Vec3], grid: f32) -> (Vec<u32>, Vec<Vec3>, Vec<u32>) {
+    let mut ids = BTreeMap::new();
+    let keys: Vec<[i64; 3]> = pos
+        .iter()
+        .map(|p| {
+            let c = (*p / grid).floor();
+            [c.x as i64, c.y as i64, c.z as i64]
+        })
+        .collect();
+    for k in &keys {
+        ids.entry(*k).or_insert(0u32);
+    }
+    for (i, v) in ids.values_mut().enumerate() {
+        *v = i as u32;
+    }
+    let cluster: Vec<u32> = keys.iter().map(|k| ids[k]).collect();
+    let mut sum = vec![Vec3::ZERO; ids.len()];
+    let mut count = vec![0u32; ids.len()];
+    for (p, c) in pos.iter().zip(&cluster) {
+        sum[*c as usize] += *p;
+        count[*c as usize] += 1;
+    }
+    let mean = sum
+        .iter()
+        .zip(&count)
+        .map(|(s, c)| *s / *c as f32)
+        .collect();
+    (cluster, mean, count)
+}
+
+/// All index structures one forward pass needs.
+#[derive(Debug)]
+pub(crate) struct Structure {
+    /// Levels, finest first.
+    pub levels: Vec<Level>,
+    /// Pooling from level `k` to `k + 1`.
+    pub pools: Vec<Pooling>,
+}
+
+impl Structure {
+    /// Serializes `pos` (centred, m) on `stages` levels.
+    pub fn new(
+        pos: &[Vec3],
+        stages: usize,
+        grid_m: f32,
+        pool_grid_m: f32,
+        patch: usize,
+        dev: &Device,
+    ) -> Result<Self> {
+        let mut levels = Vec::with_capacity(stages);
+        let mut pools = Vec::with_capacity(stages.saturating_sub(1));
+        let mut current = pos.to_vec();
+        for s in 0..stages {
+            let grid = if s == 0 {
+                grid_m
+            } else {
+                pool_grid_m * (1 << (s - 1)) as f32
+            };
+            let orders = (0..CURVES)
+                .map(|c| Order::new(&curve_order(&current, grid, c), patch, dev))
+                .collect::<Result<Vec<_>>>()?;
+            let flat: Vec<f32> = current.iter().flat_map(|p| p.to_array()).collect();
+            let pos = Tensor::from_vec(flat, (current.len(), 3), dev)?;
+            levels.push(Level { orders, pos });
+            if s + 1 < stages {
+                let g = pool_grid_m * (1 << s) as f32;
+                let (cluster, mean, count) = grid_clusters(&current, g);
+                let inv: Vec<f32> = count.iter().map(|c| 1.0 / *c as f32).collect();
+                pools.push(Pooling {
+                    cluster: u32_tensor(&cluster, dev)?,
+                    inv_count: Tensor::from_vec(inv, (mean.len(), 1), dev)?,
+                    clusters: mean.len(),
+                });
+                current = mean;
+            }
+        }
+        Ok(Structure { levels, pools })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn hilbert_visits_neighbouring_cells() {
+        // Along a Hilbert curve consecutive cells share a face: walk a 8^3 grid.
+        let n = 8u32;
+        let mut cells = Vec::new();
+        for a in 0..n {
+            for b in 0..n {
+                for c in 0..n {
+                    cells.push(([a, b, c], hilbert([a, b, c])));
+                }
+            }
+        }
+        cells.sort_by_key(|c| c.1);
+        let codes: std::collections::BTreeSet<u64> = cells.iter().map(|c| c.1).collect();
+        assert_eq!(codes.len(), cells.len(), "codes are unique");
+        for w in cells.windows(2) {
+            let d: u32 = (0..3).map(|i| w[0].0[i].abs_diff(w[1].0[i])).sum();
+            assert_eq!(d, 1, "{:?} -> {:?}", w[0].0, w[1].0);
+        }
+    }
+
+    #[test]
+    fn z_order_of_a_2x2x2_block() {
+        let pos: Vec<Vec3> = (0..8)
+            .map(|i| Vec3::new((i & 1) as f32, ((i >> 1) & 1) as f32, ((i >> 2) & 1) as f32))
+            .collect();
+        // x is the most significant slot: x varies slowest.
+        let order = curve_order(&pos, 1.0, 0);
+        assert_eq!(order, vec![0, 4, 2, 6, 1, 5, 3, 7]);
+        let trans = curve_order(&pos, 1.0, 1);
+        assert_eq!(trans, vec![0, 4, 1, 5, 2, 6, 3, 7]);
+    }
+
+    #[test]
+    fn grid_clusters_merge_cells() {
+        let pos = [
+            Vec3::new(0.01, 0.0, 0.0),
+            Vec3::new(0.03, 0.0, 0.0),
+            Vec3::new(0.11, 0.0, 0.0),
+        ];
+        let (cluster, mean, count) = grid_clusters(&pos, 0.1);
+        assert_eq!(cluster, vec![0, 0, 1]);
+        assert_eq!(count, vec![2, 1]);
+        assert!((mean[0].x - 0.02).abs() < 1e-6);
+    }
+}

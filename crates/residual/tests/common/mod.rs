@@ -1,0 +1,38 @@
+//! Shared fixtures of the residual tests.
+#![allow(dead_code)]
+
+use std::path::PathBuf;
+
+use dataset::{Dataset, Episode};
+use residual::History;
+use scene::{Protocol, Scene, SceneConfig};
+use springs::{Backbone, SpringParams};
+
+pub fn fixture(name: &str) -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../../fixtures")
+        .join(name)
+}
+
+/// Scene, episode, history and backbone (reference rope parameters) of one fixture episode.
+pub fn scene(name: &str, episode: usize) -> (Dataset, Episode, Scene, History, Backbone) {
+    let data = Dataset::open(fixture(name)).unwrap();
+    let ep = data.load_episode(episode).unwrap();
+    let window = Protocol::Paper.window(ep.frames()).unwrap();
+    let scene = Scene::new(&data.meta, &ep, window, &SceneConfig::default()).unwrap();
+    let history = History::from_episode(&scene, &ep, data.meta.fps).unwrap();
+    let bb = scene
+        .backbone(
+            &SpringParams::reference_rope(),
+            &scene.sim_config(),
+            Default::default(),
+        )
+        .unwrap();
+    (data, ep, scene, history, bb)
+}
+
+pub fn temp_dir(tag: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("pgrd-residual-{tag}-{}", std::process::id()));
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}

@@ -1,0 +1,197 @@
+//! Extension point for extra force terms ("effects") and the one built-in effect, [`AirDrag`].
+//!
+//! An effect is handed to [`crate::Backbone::with_options`] and can act at five points:
+//! once at construction ([`Effect::setup`]: masses, per-spring stiffness / damping / rest
+//! length, precomputed data such as bending triplets), in the stability bound
+//! ([`Effect::stability`]), once per model step ([`Effect::adjust_actions`]: e.g. actuation
+//! delay), every substep ([`Effect::add_forces`] before the velocity update and
+//! [`Effect::end_substep`] after the position update, which may change rest lengths, e.g.
+//! plasticity), and in ground contact ([`Effect::ground_friction`]). [`Effect::compliant_grasp`]
+//! turns kinematic grasping off so that the effect can attach held particles with forces.
+//! Per-rollout mutable data lives in the state from [`Effect::new_state`], which the
+//! [`crate::Scratch`] owns. With no effects none of this code runs.
+
+use std::any::Any;
+use std::fmt::Debug;
+
+use glam::{Vec3, Vec3A};
+
+use crate::{Backbone, SimError, SpringParams};
+
+/// Model data an effect may edit once, before the stability bound and the damping weights are
+/// computed. Spring arrays are in the backbone's internal spring order.
+#[derive(Debug)]
+pub struct ModelSetup<'a> {
+    /// Rest positions (first frame), m.
+    pub rest_positions: &'a [Vec3],
+    /// Gripper assignment per particle (-1: none).
+    pub held: &'a [i32],
+    /// The fitted parameters.
+    pub params: &'a SpringParams,
+    /// Spring endpoints.
+    pub springs: &'a [[u32; 2]],
+    /// Rest length per spring, m (initial rest lengths of every rollout).
+    pub rest_lengths: &'a mut [f32],
+    /// Stiffness per spring, N/m (starts at `params.stiffness`).
+    pub stiffness: &'a mut [f32],
+    /// Dashpot coefficient per spring, N·s/m (starts at `params.damping`).
+    pub damping: &'a mut [f32],
+    /// Mass per particle, kg (must stay finite and > 0).
+    pub masses: &'a mut [f32],
+}
+
+/// What an effect sees during a substep.
+#[derive(Debug, Clone, Copy)]
+pub struct SubstepContext<'a> {
+    /// The model.
+    pub backbone: &'a Backbone,
+    /// Substep length, s.
+    pub dt: f32,
+    /// Index of this substep within the model step (0-based).
+    pub substep: usize,
+    /// Positions, m (start of the substep in `add_forces`, end in `end_substep`).
+    pub x: &'a [Vec3A],
+    /// Velocities, m/s (same timing as `x`).
+    pub v: &'a [Vec3A],
+    /// Gripper positions at the same time, m.
+    pub grippers: &'a [Vec3],
+    /// Gripper velocities during this step, m/s.
+    pub gripper_velocities: &'a [Vec3],
+    /// Gripper closed flags for this step.
+    pub closed: &'a [bool],
+}
+
+/// One particle in ground contact, given to [`Effect::ground_friction`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GroundContact {
+    /// Particle index.
+    pub particle: usize,
+    /// Velocity component parallel to the ground after the force update, m/s.
+    pub tangential_velocity: Vec3A,
+    /// Penalty normal force, N.
+    pub normal_force: f32,
+    /// Particle mass, kg.
+    pub mass: f32,
+    /// The backbone's effective Coulomb coefficient.
+    pub mu: f32,
+    /// Substep length, s.
+    pub dt: f32,
+}
+
+/// An extra force term or model change. All hooks have no-op defaults.
+///
+/// Contract: forces are in N; an effect that adds stiffness or explicit damping must report it in
+/// [`Effect::stability`], otherwise the automatic substep may be unstable; a replacement friction
+/// law must never increase the tangential speed.
+pub trait Effect: Send + Sync + Debug {
+    /// Short name used in error messages.
+    fn name(&self) -> &str;
+
+    /// Once, when the backbone is built: edit masses / springs, precompute data.
+    fn setup(&mut self, model: &mut ModelSetup<'_>) -> Result<(), SimError> {
+        let _ = model;
+        Ok(())
+    }
+
+    /// Add this effect's contribution to the stability bound of each particle: `row_stiffness`
+    /// (N/m) gets the sum of the norms of the effect's stiffness blocks in that particle's row
+    /// (a pair spring of stiffness k adds 2k at both ends; a kinematic anchor adds k), `damping`
+    /// (N·s/m) the explicit velocity damping it applies to the particle.
+    fn stability(&self, backbone: &Backbone, row_stiffness: &mut [f32], damping: &mut [f32]) {
+        let _ = (backbone, row_stiffness, damping);
+    }
+
+    /// Fresh per-rollout state (e.g. action history, anchors); stored in the [`crate::Scratch`].
+    fn new_state(&self, backbone: &Backbone) -> Box<dyn Any + Send> {
+        let _ = backbone;
+        Box::new(())
+    }
+
+    /// At the start of each model step: may rewrite the gripper motion applied during the step
+    /// (`from`, `to`: positions, m; `closed`: flags of the step).
+    fn adjust_actions(
+        &self,
+        state: &mut dyn Any,
+        from: &mut [Vec3],
+        to: &mut [Vec3],
+        closed: &mut [bool],
+    ) {
+        let _ = (state, from, to, closed);
+    }
+
+    /// Every substep, before the velocity update: add forces (N) to `force`.
+    fn add_forces(
+        &self,
+        ctx: &SubstepContext<'_>,
+        state: &mut dyn Any,
+        rest_lengths: &[f32],
+        force: &mut [Vec3A],
+    ) {
+        let _ = (ctx, state, rest_lengths, force);
+    }
+
+    /// Every substep, after the position update: may change the rest lengths (m) of this rollout.
+    fn end_substep(&self, ctx: &SubstepContext<'_>, state: &mut dyn Any, rest_lengths: &mut [f32]) {
+        let _ = (ctx, state, rest_lengths);
+    }
+
+    /// Whether [`Effect::ground_friction`] replaces the built-in ground friction.
+    fn replaces_ground_friction(&self) -> bool {
+        false
+    }
+
+    /// New tangential velocity (m/s) of a particle in ground contact; called only when
+    /// [`Effect::replaces_ground_friction`] is true (the first such effect wins).
+    fn ground_friction(&self, contact: &GroundContact) -> Vec3A {
+        contact.tangential_velocity
+    }
+
+    /// When true, closed grippers no longer move held particles kinematically; the effect is
+    /// expected to attach them (e.g. a compliant spring to the gripper) in `add_forces`.
+    fn compliant_grasp(&self) -> bool {
+        false
+    }
+}
+
+/// Linear air drag `f = -coefficient * v` on every particle (isotropic, still air).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct AirDrag {
+    /// Drag coefficient per particle, N·s/m.
+    pub coefficient: f32,
+}
+
+impl Effect for AirDrag {
+    fn name(&self) -> &str {
+        "air-drag"
+    }
+
+    fn setup(&mut self, _model: &mut ModelSetup<'_>) -> Result<(), SimError> {
+        if self.coefficient.is_finite() && self.coefficient >= 0.0 {
+            Ok(())
+        } else {
+            Err(SimError::Effect {
+                name: self.name().to_owned(),
+                message: format!("coefficient {} must be finite and >= 0", self.coefficient),
+            })
+        }
+    }
+
+    fn stability(&self, _backbone: &Backbone, _row_stiffness: &mut [f32], damping: &mut [f32]) {
+        // Explicit drag: the bound needs its rate c/m.
+        for d in damping {
+            *d += self.coefficient;
+        }
+    }
+
+    fn add_forces(
+        &self,
+        ctx: &SubstepContext<'_>,
+        _state: &mut dyn Any,
+        _rest: &[f32],
+        force: &mut [Vec3A],
+    ) {
+        for (f, v) in force.iter_mut().zip(ctx.v) {
+            *f -= self.coefficient * *v;
+        }
+    }
+}

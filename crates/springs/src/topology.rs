@@ -1,0 +1,163 @@
+//! Spring topology built once from the first frame.
+
+use glam::{Vec3, Vec3A};
+use kiddo::SquaredEuclidean;
+use kiddo::immutable::float::kdtree::ImmutableKdTree;
+
+use crate::SimError;
+
+/// Largest number of neighbour candidates the builder will hold at once (memory guard).
+const MAX_CANDIDATES: u64 = 100_000_000;
+
+/// The springs of an object: particle pairs and their rest lengths (m).
+///
+/// Orientation matters only for bookkeeping: spring `s` joins `springs[s][0]` and `springs[s][1]`,
+/// and its force is computed from `x[springs[s][1]] - x[springs[s][0]]`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Topology {
+    /// Particle index pairs `[a, b]` with `a < b`.
+    pub springs: Vec<[u32; 2]>,
+    /// Rest length of each spring (the initial distance), m.
+    pub rest_lengths: Vec<f32>,
+}
+
+/// Distance between two particles exactly as the force kernel computes it, so that a structure
+/// built from `positions` is at rest with exactly zero spring force.
+pub(crate) fn kernel_distance(a: Vec3, b: Vec3) -> f32 {
+    (Vec3A::from(b) - Vec3A::from(a)).length()
+}
+
+fn dist2(a: Vec3, b: Vec3) -> f32 {
+    (Vec3A::from(b) - Vec3A::from(a)).length_squared()
+}
+
+impl Topology {
+    /// Build springs the reference way (docs/physics.md):
+    /// 1. for every particle, its up to `max_springs + 3` nearest other particles with
+    ///    `distance² <= threshold²` (k-d tree query; ties in distance broken by the lower index);
+    /// 2. all candidate pairs, deduplicated, sorted by (distance, lower index, higher index);
+    /// 3. accepted greedily while both ends have fewer than `max_springs` springs.
+    ///
+    /// Rest length = initial distance. The springs come out in acceptance order.
+    ///
+    /// ```
+    /// use glam::Vec3;
+    /// let pts: Vec<Vec3> = (0..5).map(|i| Vec3::new(0.01 * i as f32, 0.0, 0.0)).collect();
+    /// let topo = springs::Topology::build(&pts, 0.015, 8)?;
+    /// assert_eq!(topo.springs, vec![[0, 1], [1, 2], [2, 3], [3, 4]]);
+    /// # Ok::<(), springs::SimError>(())
+    /// ```
+    pub fn build(positions: &[Vec3], threshold: f32, max_springs: u32) -> Result<Self, SimError> {
+        if !(threshold.is_finite() && threshold > 0.0) {
+            return Err(SimError::InvalidParameter {
+                name: "threshold",
+                value: f64::from(threshold),
+                reason: "must be finite and > 0",
+            });
+        }
+        if let Some(index) = positions.iter().position(|p| !p.is_finite()) {
+            return Err(SimError::NonFinite {
+                what: "positions",
+                index,
+            });
+        }
+        let n = positions.len();
+        if n > u32::MAX as usize {
+            return Err(SimError::TooLarge {
+                what: "particle count",
+                value: n as u64,
+                limit: u64::from(u32::MAX),
+            });
+        }
+        let per_point = u64::from(max_springs) + 3;
+        if n as u64 * per_point.min(n as u64) > MAX_CANDIDATES {
+            return Err(SimError::TooLarge {
+                what: "neighbour candidates",
+                value: n as u64 * per_point,
+                limit: MAX_CANDIDATES,
+            });
+        }
+        if n < 2 || max_springs == 0 {
+            return Ok(Self {
+                springs: Vec::new(),
+                rest_lengths: Vec::new(),
+            });
+        }
+        let per_point = per_point as usize;
+        let t2 = threshold * threshold;
+        let pts: Vec<[f32; 3]> = positions.iter().map(|p| p.to_array()).collect();
+        let tree: ImmutableKdTree<f32, u32, 3, 32> = ImmutableKdTree::new_from_slice(&pts);
+        // Query a slightly larger radius, then decide with our own distance so that the result
+        // never depends on how the tree rounds.
+        let query_r2 = t2 * (1.0 + 1e-4) + f32::MIN_POSITIVE;
+
+        let mut candidates: Vec<(f32, u32, u32)> = Vec::new();
+        let mut near: Vec<(f32, u32)> = Vec::new();
+        for (i, &p) in positions.iter().enumerate() {
+            near.clear();
+            for nb in tree.within_unsorted::<SquaredEuclidean>(&pts[i], query_r2) {
+                let j = nb.item;
+                if j as usize == i {
+                    continue;
+                }
+                let d2 = dist2(p, positions[j as usize]);
+                if d2 <= t2 {
+                    near.push((d2, j));
+                }
+            }
+            if near.len() > per_point {
+                near.select_nth_unstable_by(per_point - 1, cmp_near);
+                near.truncate(per_point);
+            }
+            let i = i as u32;
+            candidates.extend(near.iter().map(|&(d2, j)| (d2, i.min(j), i.max(j))));
+        }
+        candidates
+            .sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
+        candidates.dedup_by(|a, b| a.1 == b.1 && a.2 == b.2);
+
+        let mut count = vec![0u32; n];
+        let mut springs = Vec::new();
+        let mut rest_lengths = Vec::new();
+        for &(_, a, b) in &candidates {
+            let (ua, ub) = (a as usize, b as usize);
+            if count[ua] < max_springs && count[ub] < max_springs {
+                count[ua] += 1;
+                count[ub] += 1;
+                springs.push([a, b]);
+                rest_lengths.push(kernel_distance(positions[ua], positions[ub]));
+            }
+        }
+        Ok(Self {
+            springs,
+            rest_lengths,
+        })
+    }
+
+    /// Number of springs.
+    pub fn len(&self) -> usize {
+        self.springs.len()
+    }
+
+    /// Whether there are no springs.
+    pub fn is_empty(&self) -> bool {
+        self.springs.is_empty()
+    }
+
+    /// Springs attached to each of `num_particles` particles (indices beyond are ignored).
+    pub fn springs_per_particle(&self, num_particles: usize) -> Vec<u32> {
+        let mut count = vec![0u32; num_particles];
+        for &[a, b] in &self.springs {
+            for p in [a, b] {
+                if let Some(c) = count.get_mut(p as usize) {
+                    *c += 1;
+                }
+            }
+        }
+        count
+    }
+}
+
+fn cmp_near(a: &(f32, u32), b: &(f32, u32)) -> std::cmp::Ordering {
+    a.0.total_cmp(&b.0).then(a.1.cmp(&b.1))
+}

@@ -1,0 +1,131 @@
+//! Spring topology: limits, agreement with a brute-force O(N^2) construction, bad input.
+
+mod common;
+
+use glam::{Vec3, Vec3A};
+use proptest::prelude::*;
+use springs::{SimError, Topology};
+
+/// Independent O(N^2) implementation of the reference rule (see `Topology::build`).
+fn brute_force(x: &[Vec3], threshold: f32, max_springs: u32) -> Vec<([u32; 2], f32)> {
+    let n = x.len();
+    let d2 = |i: usize, j: usize| (Vec3A::from(x[j]) - Vec3A::from(x[i])).length_squared();
+    let mut cands = Vec::new();
+    for i in 0..n {
+        let mut near: Vec<(f32, usize)> = (0..n)
+            .filter(|&j| j != i && d2(i, j) <= threshold * threshold)
+            .map(|j| (d2(i, j), j))
+            .collect();
+        near.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        near.truncate(max_springs as usize + 3);
+        for (d, j) in near {
+            cands.push((d, i.min(j), i.max(j)));
+        }
+    }
+    cands.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
+    cands.dedup_by(|a, b| a.1 == b.1 && a.2 == b.2);
+    let mut count = vec![0u32; n];
+    let mut out = Vec::new();
+    for (_, a, b) in cands {
+        if count[a] < max_springs && count[b] < max_springs {
+            count[a] += 1;
+            count[b] += 1;
+            out.push((
+                [a as u32, b as u32],
+                (Vec3A::from(x[b]) - Vec3A::from(x[a])).length(),
+            ));
+        }
+    }
+    out
+}
+
+/// Random points; with `grid` they sit on a 5 mm grid, which creates many equal distances.
+fn points(seed: u64, n: usize, grid: bool) -> Vec<Vec3> {
+    let mut rng = common::Rng::new(seed);
+    (0..n)
+        .map(|_| {
+            let p = rng.vec3(0.03);
+            if grid { (p / 0.005).round() * 0.005 } else { p }
+        })
+        .collect()
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(48))]
+
+    #[test]
+    fn matches_brute_force(seed in any::<u64>(), n in 0usize..160, grid in any::<bool>(),
+                           threshold in 0.002f32..0.03, max_springs in 0u32..40) {
+        let x = points(seed, n, grid);
+        let topo = Topology::build(&x, threshold, max_springs).unwrap();
+        let expected = brute_force(&x, threshold, max_springs);
+        let got: Vec<([u32; 2], f32)> =
+            topo.springs.iter().copied().zip(topo.rest_lengths.iter().copied()).collect();
+        prop_assert_eq!(got, expected);
+    }
+
+    #[test]
+    fn respects_limits(seed in any::<u64>(), n in 2usize..200, threshold in 0.002f32..0.05,
+                       max_springs in 1u32..30) {
+        let x = points(seed, n, false);
+        let topo = Topology::build(&x, threshold, max_springs).unwrap();
+        for (&[a, b], &l) in topo.springs.iter().zip(&topo.rest_lengths) {
+            prop_assert!(a < b && (b as usize) < n);
+            prop_assert!(l <= threshold * (1.0 + 1e-6));
+            prop_assert!((l - x[a as usize].distance(x[b as usize])).abs() <= 1e-6);
+        }
+        prop_assert!(topo.springs_per_particle(n).iter().all(|&c| c <= max_springs));
+        let mut pairs = topo.springs.clone();
+        pairs.sort();
+        pairs.dedup();
+        prop_assert_eq!(pairs.len(), topo.springs.len(), "duplicate springs");
+    }
+}
+
+#[test]
+fn chain_and_cap() {
+    // Five points 1 cm apart: threshold 1.5 cm links neighbours only; 2.5 cm also links i, i+2.
+    let x: Vec<Vec3> = (0..5)
+        .map(|i| Vec3::new(0.01 * i as f32, 0.0, 0.0))
+        .collect();
+    let sorted = |t: Topology| {
+        let mut s = t.springs;
+        s.sort();
+        s
+    };
+    let neighbours = vec![[0, 1], [1, 2], [2, 3], [3, 4]];
+    assert_eq!(sorted(Topology::build(&x, 0.015, 10).unwrap()), neighbours);
+    assert_eq!(Topology::build(&x, 0.025, 10).unwrap().len(), 7);
+    // Max 2 per point: the four short links fill points 1..3, so no 2 cm link fits.
+    assert_eq!(sorted(Topology::build(&x, 0.025, 2).unwrap()), neighbours);
+    // Max 3: (0,2) and (1,3) fit; (2,4) does not (point 2 is full).
+    assert_eq!(
+        sorted(Topology::build(&x, 0.025, 3).unwrap()),
+        vec![[0, 1], [0, 2], [1, 2], [1, 3], [2, 3], [3, 4]]
+    );
+}
+
+#[test]
+fn bad_input() {
+    let x = vec![Vec3::ZERO, Vec3::X];
+    assert!(matches!(
+        Topology::build(&x, 0.0, 4),
+        Err(SimError::InvalidParameter {
+            name: "threshold",
+            ..
+        })
+    ));
+    assert!(matches!(
+        Topology::build(&x, f32::NAN, 4),
+        Err(SimError::InvalidParameter { .. })
+    ));
+    let bad = vec![Vec3::ZERO, Vec3::new(0.0, f32::INFINITY, 0.0)];
+    assert_eq!(
+        Topology::build(&bad, 0.1, 4),
+        Err(SimError::NonFinite {
+            what: "positions",
+            index: 1
+        })
+    );
+    assert!(Topology::build(&[], 0.1, 4).unwrap().is_empty());
+}
