@@ -46,11 +46,12 @@ fn synthetic_scenes(truth: &SpringParams, count: usize) -> (DatasetMeta, Vec<Sce
 }
 
 fn truth() -> SpringParams {
+    // Two neighbours each side and firm damping: a well-posed, non-chaotic swing.
     SpringParams {
         stiffness: 3000.0,
-        damping: 5.0,
-        threshold: 0.025,
-        max_springs: 4,
+        damping: 30.0,
+        threshold: 0.045,
+        max_springs: 8,
         ground_friction: 0.3,
     }
 }

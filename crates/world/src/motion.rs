@@ -1,0 +1,387 @@
+//! Gripper trajectories: smooth, varied, random, in the style of each object's manipulation.
+//!
+//! A trajectory is a quintic Hermite spline through random waypoints (positions and velocities
+//! given, zero acceleration at every waypoint: continuous acceleration, robot-like) plus optional
+//! waving: sinusoids with smoothly varying amplitude. Everything is constant before t = 0, and
+//! starts from rest.
+
+use glam::Vec3;
+use rand::Rng;
+
+use crate::ObjectKind;
+
+#[derive(Clone, Copy, Debug)]
+struct Knot {
+    t: f32,
+    p: Vec3,
+    v: Vec3,
+}
+
+#[derive(Clone, Debug)]
+struct Wave {
+    dir: Vec3,
+    freq_hz: f32,
+    phase: f32,
+    /// Amplitude knots (time s, amplitude m), interpolated with a quintic smoothstep.
+    envelope: Vec<(f32, f32)>,
+}
+
+/// A gripper trajectory, defined for all times (constant outside its knots).
+#[derive(Clone, Debug)]
+pub(crate) struct Motion {
+    knots: Vec<Knot>,
+    waves: Vec<Wave>,
+    min_z: f32,
+}
+
+fn smoothstep5(s: f32) -> f32 {
+    s * s * s * (10.0 + s * (-15.0 + 6.0 * s))
+}
+
+impl Motion {
+    fn new(start: Vec3, min_z: f32) -> Motion {
+        Motion {
+            knots: vec![Knot {
+                t: 0.0,
+                p: start,
+                v: Vec3::ZERO,
+            }],
+            waves: Vec::new(),
+            min_z,
+        }
+    }
+
+    /// A gripper that stays at `p`.
+    pub(crate) fn default_at(p: Vec3) -> Motion {
+        Motion::new(p, f32::NEG_INFINITY)
+    }
+
+    /// Gripper position at time `t` (s).
+    pub(crate) fn at(&self, t: f32) -> Vec3 {
+        let mut p = self.spline(t);
+        for w in &self.waves {
+            let a = envelope(&w.envelope, t);
+            if a != 0.0 {
+                p += w.dir * (a * (std::f32::consts::TAU * w.freq_hz * t + w.phase).sin());
+            }
+        }
+        p.z = p.z.max(self.min_z);
+        p
+    }
+
+    fn spline(&self, t: f32) -> Vec3 {
+        let k = &self.knots;
+        if t <= k[0].t {
+            return k[0].p;
+        }
+        let last = k[k.len() - 1];
+        if t >= last.t {
+            return last.p;
+        }
+        let i = k.partition_point(|q| q.t <= t) - 1;
+        let (a, b) = (k[i], k[i + 1]);
+        let dt = b.t - a.t;
+        let s = (t - a.t) / dt;
+        let (s2, s3) = (s * s, s * s * s);
+        let (s4, s5) = (s3 * s, s3 * s2);
+        // Quintic Hermite basis with zero end accelerations.
+        let h00 = 1.0 - 10.0 * s3 + 15.0 * s4 - 6.0 * s5;
+        let h10 = s - 6.0 * s3 + 8.0 * s4 - 3.0 * s5;
+        let h01 = 10.0 * s3 - 15.0 * s4 + 6.0 * s5;
+        let h11 = -4.0 * s3 + 7.0 * s4 - 3.0 * s5;
+        a.p * h00 + a.v * (h10 * dt) + b.p * h01 + b.v * (h11 * dt)
+    }
+
+    /// The time of the last waypoint, s.
+    pub(crate) fn end_time(&self) -> f32 {
+        self.knots[self.knots.len() - 1].t
+    }
+
+    fn last(&self) -> Vec3 {
+        self.knots[self.knots.len() - 1].p
+    }
+
+    fn push(&mut self, dt: f32, p: Vec3) {
+        let t = self.end_time() + dt;
+        self.knots.push(Knot {
+            t,
+            p,
+            v: Vec3::ZERO,
+        });
+    }
+
+    /// Catmull–Rom velocities scaled by a random factor in [0, 1] (0: the arm stops there);
+    /// vertical velocity is zeroed near the floor so the path does not dip into it.
+    fn set_velocities(&mut self, rng: &mut impl Rng, from: usize) {
+        let n = self.knots.len();
+        for i in from.max(1)..n.saturating_sub(1) {
+            let (a, b) = (self.knots[i - 1], self.knots[i + 1]);
+            let mut v = (b.p - a.p) / (b.t - a.t) * rng.random_range(0.0..1.0f32);
+            if self.knots[i].p.z < self.min_z + 0.02 {
+                v.z = 0.0;
+            }
+            self.knots[i].v = v;
+        }
+    }
+
+    fn add_waves(
+        &mut self,
+        rng: &mut impl Rng,
+        count: usize,
+        freq: (f32, f32),
+        max_amp: f32,
+        start: f32,
+        vertical: f32,
+    ) {
+        let end = self.end_time();
+        for _ in 0..count {
+            let az = rng.random_range(0.0..std::f32::consts::TAU);
+            let dir =
+                Vec3::new(az.cos(), az.sin(), rng.random_range(-vertical..=vertical)).normalize();
+            let mut envelope = vec![(0.0, 0.0), (start, 0.0)];
+            let mut t = start;
+            while t < end {
+                t += rng.random_range(1.0..2.5);
+                envelope.push((t, rng.random_range(0.0..max_amp)));
+            }
+            self.waves.push(Wave {
+                dir,
+                freq_hz: rng.random_range(freq.0..freq.1),
+                phase: rng.random_range(0.0..std::f32::consts::TAU),
+                envelope,
+            });
+        }
+    }
+}
+
+fn envelope(knots: &[(f32, f32)], t: f32) -> f32 {
+    if t <= knots[0].0 {
+        return knots[0].1;
+    }
+    for w in knots.windows(2) {
+        let ((t0, a0), (t1, a1)) = (w[0], w[1]);
+        if t <= t1 {
+            return a0 + (a1 - a0) * smoothstep5((t - t0) / (t1 - t0));
+        }
+    }
+    knots[knots.len() - 1].1
+}
+
+fn clamp_disk(p: Vec3, centre: Vec3, radius: f32) -> Vec3 {
+    let d = Vec3::new(p.x - centre.x, p.y - centre.y, 0.0);
+    let l = d.length();
+    if l <= radius {
+        p
+    } else {
+        let q = centre + d * (radius / l);
+        Vec3::new(q.x, q.y, p.z)
+    }
+}
+
+/// An open-loop trajectory for a grasped object starting at `start` (the gripper's position after
+/// settling), lasting at least `duration` seconds. `centre` is the middle of the workspace.
+pub(crate) fn grasp_motion(
+    kind: ObjectKind,
+    start: Vec3,
+    centre: Vec3,
+    duration: f32,
+    rng: &mut impl Rng,
+) -> Motion {
+    let mut m;
+    match kind {
+        ObjectKind::Rope => {
+            // Drag across the table, lift, move in the air, lower; sometimes pause.
+            let low = start.z;
+            m = Motion::new(start, low);
+            let mut lifted = false;
+            while m.end_time() < duration {
+                let p = m.last();
+                if rng.random_bool(0.12) {
+                    m.push(rng.random_range(0.3..0.8), p);
+                    continue;
+                }
+                let r = rng.random_range(0.0..1.0f32);
+                let az = rng.random_range(0.0..std::f32::consts::TAU);
+                let dir = Vec3::new(az.cos(), az.sin(), 0.0);
+                let (dt, q) = if !lifted && r < 0.6 {
+                    let q = p + dir * rng.random_range(0.08..0.3);
+                    let q = Vec3::new(q.x, q.y, low + rng.random_range(0.0..0.01));
+                    (rng.random_range(0.8..1.8), q)
+                } else if !lifted {
+                    lifted = true;
+                    let q = p + dir * rng.random_range(0.0..0.08);
+                    (
+                        rng.random_range(1.0..2.0),
+                        Vec3::new(q.x, q.y, rng.random_range(0.15..0.4)),
+                    )
+                } else if r < 0.5 {
+                    let q = p + dir * rng.random_range(0.0..0.15);
+                    (
+                        rng.random_range(0.8..1.8),
+                        Vec3::new(q.x, q.y, rng.random_range(0.12..0.4)),
+                    )
+                } else {
+                    lifted = false;
+                    let q = p + dir * rng.random_range(0.0..0.1);
+                    (
+                        rng.random_range(1.0..2.0),
+                        Vec3::new(q.x, q.y, low + rng.random_range(0.0..0.04)),
+                    )
+                };
+                m.push(dt, clamp_disk(q, centre, 0.35));
+            }
+            m.set_velocities(rng, 0);
+        }
+        ObjectKind::Paper | ObjectKind::Flag | ObjectKind::Duster => {
+            // Hold in the air: drift between random poses around home while waving.
+            let (reach, freq, amp) = match kind {
+                ObjectKind::Paper => (0.12, (0.6, 1.8), 0.06),
+                ObjectKind::Flag => (0.15, (0.7, 2.0), 0.10),
+                _ => (0.12, (0.8, 2.2), 0.08),
+            };
+            m = Motion::new(start, 0.1);
+            while m.end_time() < duration {
+                let q = start
+                    + Vec3::new(
+                        rng.random_range(-reach..reach),
+                        rng.random_range(-reach..reach),
+                        rng.random_range(-0.06..0.06),
+                    );
+                m.push(rng.random_range(0.7..1.6), q);
+            }
+            m.set_velocities(rng, 0);
+            let start = rng.random_range(0.3..1.0);
+            m.add_waves(rng, 2, freq, amp, start, 0.2);
+        }
+        ObjectKind::Sloth | ObjectKind::Teddy => {
+            // Lift off the table, swing in the air, now and then lower it to touch down.
+            let low = start.z;
+            m = Motion::new(start, low - 0.005);
+            m.push(rng.random_range(0.2..0.6), start);
+            let up = Vec3::new(start.x, start.y, low + rng.random_range(0.15..0.3));
+            m.push(rng.random_range(1.0..1.5), up);
+            while m.end_time() < duration {
+                let q = if rng.random_bool(0.2) {
+                    let p = m.last();
+                    Vec3::new(p.x, p.y, low + rng.random_range(0.0..0.04))
+                } else {
+                    let q = centre
+                        + Vec3::new(
+                            rng.random_range(-0.15..0.15),
+                            rng.random_range(-0.15..0.15),
+                            0.0,
+                        );
+                    Vec3::new(q.x, q.y, low + rng.random_range(0.12..0.32))
+                };
+                m.push(rng.random_range(0.8..1.6), q);
+            }
+            m.set_velocities(rng, 2);
+            m.add_waves(rng, 2, (0.5, 1.2), 0.07, 2.0, 0.1);
+        }
+    }
+    m
+}
+
+/// Online planner of pokes for a pushed object: every poke is aimed at the object's current
+/// position, so the finger keeps finding it even after it slid or toppled.
+#[derive(Clone, Debug)]
+pub(crate) struct PokePlanner {
+    /// Pushing-sphere radius, m.
+    pub radius: f32,
+    /// Lattice spacing of the object, m (to find its surface along a ray).
+    pub spacing: f32,
+}
+
+impl PokePlanner {
+    /// The finger's start: beside the object, at a safe distance.
+    pub(crate) fn start(&self, x: &[Vec3], rng: &mut impl Rng) -> (Motion, Vec3) {
+        let c = crate::build::centroid_of(x);
+        let az = rng.random_range(0.0..std::f32::consts::TAU);
+        let d = Vec3::new(az.cos(), az.sin(), 0.0);
+        let s = self.surface_distance(x, c, d, 0.08);
+        let p = Vec3::new(c.x, c.y, 0.0) + d * (s + self.radius + 0.05) + Vec3::Z * 0.08;
+        (Motion::new(p, self.radius), p)
+    }
+
+    /// Appends pokes until the trajectory covers `until` seconds, using the object's current
+    /// particle positions `x`. Pokes come from the side (moving around the object along an arc
+    /// outside it) or, now and then, from above.
+    pub(crate) fn extend(&self, m: &mut Motion, x: &[Vec3], until: f32, rng: &mut impl Rng) {
+        let first_new = m.knots.len();
+        while m.end_time() < until {
+            let c = crate::build::centroid_of(x);
+            let top = x.iter().map(|p| p.z).fold(f32::NEG_INFINITY, f32::max);
+            let depth = rng.random_range(0.01..0.03);
+            let p = m.last();
+            let here = (p.y - c.y).atan2(p.x - c.x);
+            if rng.random_bool(0.15) {
+                let xy = Vec3::new(c.x, c.y, 0.0)
+                    + Vec3::new(
+                        rng.random_range(-0.02..0.02),
+                        rng.random_range(-0.02..0.02),
+                        0.0,
+                    );
+                let s = x
+                    .iter()
+                    .filter(|q| {
+                        Vec3::new(q.x - xy.x, q.y - xy.y, 0.0).length() < 1.5 * self.spacing
+                    })
+                    .map(|q| q.z)
+                    .fold(top * 0.5, f32::max);
+                let safe = top + self.radius + 0.04;
+                m.push(
+                    rng.random_range(0.3..0.5),
+                    Vec3::new(p.x, p.y, safe.max(p.z)),
+                );
+                m.push(rng.random_range(0.4..0.7), xy + Vec3::Z * safe);
+                m.push(
+                    rng.random_range(0.3..0.6),
+                    xy + Vec3::Z * (s + self.radius - depth),
+                );
+                m.push(
+                    rng.random_range(0.05..0.2),
+                    xy + Vec3::Z * (s + self.radius - depth),
+                );
+                m.push(rng.random_range(0.3..0.5), xy + Vec3::Z * safe);
+                continue;
+            }
+            let target = here + rng.random_range(-1.6..1.6f32);
+            let z = (top * rng.random_range(0.2..0.55)).max(self.radius + 0.005);
+            // Around the object in steps of at most 45°, staying 3 cm outside its surface.
+            let arc = ((target - here).abs() / 0.785).ceil().max(1.0) as usize;
+            for k in 1..=arc {
+                let a = here + (target - here) * k as f32 / arc as f32;
+                let d = Vec3::new(a.cos(), a.sin(), 0.0);
+                let zk = p.z + (z - p.z) * k as f32 / arc as f32;
+                let r = self.surface_distance(x, c, d, zk) + self.radius + 0.03;
+                m.push(rng.random_range(0.25..0.4), Vec3::new(c.x, c.y, zk) + d * r);
+            }
+            let d = Vec3::new(target.cos(), target.sin(), 0.0);
+            let s = self.surface_distance(x, c, d, z);
+            let base = Vec3::new(c.x, c.y, z);
+            let press = base + d * (s + self.radius - depth);
+            m.push(rng.random_range(0.3..0.6), press);
+            m.push(rng.random_range(0.05..0.2), press);
+            m.push(
+                rng.random_range(0.3..0.5),
+                base + d * (s + self.radius + 0.03),
+            );
+        }
+        m.set_velocities(rng, first_new);
+    }
+
+    /// Distance from `c` along horizontal `d` to the outermost particle near that ray at height
+    /// `z`.
+    fn surface_distance(&self, x: &[Vec3], c: Vec3, d: Vec3, z: f32) -> f32 {
+        let band = 1.5 * self.spacing;
+        x.iter()
+            .filter(|p| (p.z - z).abs() < band)
+            .filter_map(|p| {
+                let r = Vec3::new(p.x - c.x, p.y - c.y, 0.0);
+                let along = r.dot(d);
+                let lateral = (r - d * along).length();
+                (lateral < band).then_some(along)
+            })
+            .fold(0.0, f32::max)
+    }
+}
