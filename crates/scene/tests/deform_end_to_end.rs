@@ -9,7 +9,11 @@ use springs::SpringParams;
 
 #[test]
 fn dlo1_eval_episode_end_to_end() {
-    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/deform/DLO1");
+    // `$PGRD_SHARED_DIR` or the `shared/` folder beside the workspace.
+    let shared = std::env::var_os("PGRD_SHARED_DIR")
+        .map(std::path::PathBuf::from)
+        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared"));
+    let src = shared.join("data/deform/DLO1");
     if !src.is_dir() {
         eprintln!("skipped: ../shared/data/deform is not present on this machine");
         return;
