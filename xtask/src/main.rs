@@ -9,6 +9,7 @@ mod cmd_eval;
 mod cmd_fit;
 mod cmd_gen;
 mod cmd_import;
+mod cmd_metrics;
 mod cmd_train;
 mod common;
 mod report;
@@ -34,6 +35,8 @@ enum Command {
     Fit(cmd_fit::FitArgs),
     /// Evaluate a run's model on a split: MDE, Chamfer, EMD per step.
     Eval(cmd_eval::EvalArgs),
+    /// Point-cloud metrics of two .npy clouds as JSON (MDE, Chamfer, EMD).
+    Metrics(cmd_metrics::MetricsArgs),
     /// Train the residual network (PGRD) on top of a run's fitted backbone.
     Train(cmd_train::TrainArgs),
     /// Convert another dataset format into a pgrd dataset.
@@ -49,6 +52,7 @@ fn main() -> anyhow::Result<()> {
         Command::Fit(args) => cmd_fit::run(&args).map(drop),
         Command::Eval(args) => cmd_eval::run(&args).map(drop),
         Command::Import(args) => cmd_import::run(&args),
+        Command::Metrics(args) => cmd_metrics::run(&args),
         Command::Train(args) => cmd_train::run(&args),
     }
 }

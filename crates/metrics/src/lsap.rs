@@ -14,11 +14,11 @@
 //! ```
 //! use metrics::lsap::LsapSolver;
 //! // 2 rows x 3 columns, row-major.
-//! let cost = [4.0, 1.0, 3.0,
+//! let cost = [4.0, 1.0, 3.5,
 //!             2.0, 0.0, 5.0];
 //! let mut solver = LsapSolver::new();
 //! let assignment = solver.solve(&cost, 2, 3)?;
-//! assert_eq!(assignment, &[1, 0]); // 1 + 2 = 3 beats 0 + 4
+//! assert_eq!(assignment, &[1, 0]); // 1 + 2 = 3 beats 4 + 0 and 3.5 + 0
 //! # Ok::<(), metrics::MetricsError>(())
 //! ```
 
