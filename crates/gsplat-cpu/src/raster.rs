@@ -275,6 +275,7 @@ fn composite(
 /// Composites one tile's splats (front to back) into `st`. Each splat touches only the rows
 /// of its pixel rectangle inside the tile, and in each row only the runs of pixels that are
 /// near its ellipse and still live; the loop ends once every pixel has stopped.
+// Out of line so that profiles show it; called once per tile, so the call costs nothing.
 #[inline(never)]
 fn composite_tile(
     splats: &[Splat],

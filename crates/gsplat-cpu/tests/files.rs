@@ -84,6 +84,7 @@ fn reads_binary_little_endian_3dgs_ply() {
     let path = temp("two.ply");
     std::fs::write(&path, &bytes).unwrap();
     check_decoded(&read_ply(&path).unwrap());
+    std::fs::remove_file(&path).ok();
     // Big-endian and ASCII variants of the same data.
     let mut big = header(2, "binary_big_endian").into_bytes();
     for row in rows() {
@@ -146,6 +147,7 @@ fn write_then_read_round_trips() {
     let path = temp("round.ply");
     write_ply(&path, &g).unwrap();
     let back = read_ply(&path).unwrap();
+    std::fs::remove_file(&path).ok();
     for i in 0..2 {
         assert!((back.means[i] - g.means[i]).length() < 1e-7);
         assert!(back.rotations[i].abs_diff_eq(g.rotations[i], 1e-7));
@@ -190,6 +192,7 @@ fn png_round_trips_and_layouts_place_panels() {
     write_png(&path, &pair).unwrap();
     let back = image::open(&path).unwrap().into_rgb8();
     assert_eq!(back, pair);
+    std::fs::remove_file(&path).ok();
     assert!(grid(&[], 2).is_err());
     assert!(matches!(
         write_png("/nonexistent/dir/x.png", &pair),
@@ -214,6 +217,7 @@ fn gif_has_every_frame() {
     assert_eq!(decoded.len(), 4);
     assert_eq!(decoded[0].buffer().dimensions(), (12, 8));
     assert_eq!(decoded[1].delay().numer_denom_ms(), (250, 1));
+    std::fs::remove_file(&path).ok();
     assert!(write_gif(&path, &[], 100).is_err());
     let odd = vec![frames[0].clone(), gradient(5, 5).to_rgb8()];
     assert!(matches!(
