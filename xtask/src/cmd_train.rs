@@ -7,13 +7,13 @@ use anyhow::Context;
 use dataset::{Dataset, Split};
 use indicatif::{ProgressBar, ProgressStyle};
 use residual::{
-    Combine, EncoderKind, ModelConfig, ResidualError, ResidualKind, ResidualNet, TrainConfig,
-    TrainSet, Trainer,
+    Combine, EncoderKind, ModelConfig, ResidualError, ResidualKind, ResidualNet, StartFrom,
+    TrainConfig, TrainSet, Trainer,
 };
 use scene::SceneConfig;
 use serde::Serialize;
 
-use crate::common::read_backbone;
+use crate::common::{ProtocolArg, read_backbone};
 use crate::report::write_json;
 
 /// `--encoder`.
@@ -23,6 +23,17 @@ pub enum EncoderArg {
     Ptv3,
     /// PointNet++-style set abstraction (ablation).
     Pointnet,
+}
+
+/// `--start-from`.
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+pub enum StartArg {
+    /// The model's own rollout states (what evaluation meets).
+    Rollout,
+    /// The recorded frames (the reference code's sampling).
+    Recorded,
+    /// Half from a guided backbone rollout near the truth, half from the model's own.
+    Guided,
 }
 
 /// Arguments of `train`.
@@ -86,6 +97,22 @@ pub struct TrainArgs {
     /// Ablation: correct positions instead of velocities.
     #[arg(long)]
     pub position_residual: bool,
+    /// Where training segments start: `guided` (half from a backbone rollout pulled toward
+    /// the recorded frames, half as `rollout`), `rollout` (the model's own states along the
+    /// evaluation window, refreshed with the hybrid model every --refresh-every steps) or
+    /// `recorded` (tracked frames, as the reference code). See docs/residual.md.
+    #[arg(long, value_enum, default_value_t = StartArg::Guided)]
+    pub start_from: StartArg,
+    /// Re-run the hybrid model over the training episodes every this many steps (0: never).
+    #[arg(long, default_value_t = 0)]
+    pub refresh_every: usize,
+    /// Evaluation protocol whose window training segments are drawn from (use the one you
+    /// evaluate with).
+    #[arg(long, value_enum, default_value_t = ProtocolArg::Paper)]
+    pub protocol: ProtocolArg,
+    /// Residual bound, m/s per axis (0.1 in the paper).
+    #[arg(long, default_value_t = 0.1)]
+    pub residual_scale: f32,
     /// Print only the final line.
     #[arg(long)]
     pub quiet: bool,
@@ -130,6 +157,7 @@ fn model_config(args: &TrainArgs) -> ModelConfig {
         } else {
             ResidualKind::Velocity
         },
+        residual_scale: args.residual_scale,
         ..ModelConfig::default()
     }
 }
@@ -156,11 +184,12 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
         .ok();
     let data = Dataset::open(&args.data)?;
     let backbone = read_backbone(&args.run)?;
-    let set = TrainSet::new(
+    let set = TrainSet::with_protocol(
         &data,
         Split::Train,
         &backbone.params,
         &SceneConfig::default(),
+        args.protocol.into(),
     )
     .with_context(|| format!("loading training episodes of {}", args.data.display()))?;
     let model_cfg = model_config(args);
@@ -173,6 +202,12 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
         decay_steps: args.iterations,
         clip: args.clip,
         augment: !args.no_augment,
+        start_from: match args.start_from {
+            StartArg::Rollout => StartFrom::Rollout,
+            StartArg::Recorded => StartFrom::Recorded,
+            StartArg::Guided => StartFrom::Guided,
+        },
+        refresh_every: args.refresh_every,
         seed: args.seed,
     };
     let net = ResidualNet::new(&model_cfg, args.seed)?;

@@ -41,5 +41,5 @@ pub use augment::{rotate_history, rotate_scene};
 pub use config::{Combine, EncoderKind, ModelConfig, ResidualKind};
 pub use error::{ResidualError, Result};
 pub use model::{INPUTS, ResidualNet};
-pub use rollout::{History, HybridRollout, RolloutOptions, hybrid_rollout};
-pub use train::{Sample, StepStats, TrainConfig, TrainSet, Trainer};
+pub use rollout::{History, HybridRollout, RolloutOptions, hybrid_rollout, predict};
+pub use train::{Sample, StartFrom, StepStats, TrainConfig, TrainSet, Trainer};

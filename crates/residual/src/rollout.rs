@@ -6,7 +6,7 @@ use candle_core::{DType, Tensor};
 use dataset::Episode;
 use glam::Vec3;
 use scene::Scene;
-use springs::{Backbone, SimError, State};
+use springs::{Actions, Backbone, SimError, State};
 
 use crate::model::{INPUTS, ResidualNet};
 use crate::serialize::{CURVES, Structure};
@@ -80,6 +80,8 @@ impl History {
 pub struct HybridRollout {
     /// Positions of all simulated particles after each step, m.
     pub positions: Vec<Vec<Vec3>>,
+    /// Velocities of all simulated particles after each step, m/s.
+    pub velocities: Vec<Vec<Vec3>>,
     /// Sum over steps of the mean squared distance to the truth (cm²), with its graph when
     /// the rollout was run for training.
     pub loss: Option<Tensor>,
@@ -133,21 +135,95 @@ pub fn hybrid_rollout(
     history: &History,
     opts: RolloutOptions,
 ) -> Result<HybridRollout> {
+    let n = scene.particles();
+    if backbone.num_particles() != n {
+        return Err(ResidualError::Input(format!(
+            "scene has {n} particles, backbone {}",
+            backbone.num_particles()
+        )));
+    }
+    let steps = opts.steps.min(scene.window.steps);
+    let loss = |step: usize, x: &Tensor| step_loss(scene, step, x);
+    run(
+        net,
+        backbone,
+        &scene.init,
+        history,
+        &scene.actions,
+        steps,
+        opts,
+        opts.train.then_some(&loss as &LossFn<'_>),
+    )
+}
+
+/// Predicts the positions of all particles of `backbone` after each of `steps` steps of
+/// `actions` (frame `k` to `k + 1` is step `k`), starting from `init` with `history` before it:
+/// the hybrid model without ground truth, e.g. as a planner's forward model. Held particles come
+/// from [`Backbone::held`], the step length from the backbone's configuration.
+///
+/// ```no_run
+/// # fn main() -> Result<(), residual::ResidualError> {
+/// # let (net, backbone, init, actions): (residual::ResidualNet, springs::Backbone, springs::State, springs::Actions) = todo!();
+/// let history = residual::History::extrapolated(&init, backbone.config().step_dt);
+/// let positions = residual::predict(&net, &backbone, &init, &history, &actions, 10)?;
+/// assert_eq!(positions.len(), 10);
+/// # Ok(()) }
+/// ```
+pub fn predict(
+    net: &ResidualNet,
+    backbone: &Backbone,
+    init: &State,
+    history: &History,
+    actions: &Actions,
+    steps: usize,
+) -> Result<Vec<Vec<Vec3>>> {
+    if steps >= actions.num_frames() {
+        return Err(ResidualError::Input(format!(
+            "{steps} steps need {} action frames, got {}",
+            steps + 1,
+            actions.num_frames()
+        )));
+    }
+    let opts = RolloutOptions {
+        steps,
+        ..RolloutOptions::default()
+    };
+    Ok(run(net, backbone, init, history, actions, steps, opts, None)?.positions)
+}
+
+/// Loss of one step given the hybrid positions (with their graph).
+type LossFn<'a> = dyn Fn(usize, &Tensor) -> Result<Tensor> + 'a;
+
+#[allow(clippy::too_many_arguments)]
+fn run(
+    net: &ResidualNet,
+    backbone: &Backbone,
+    init: &State,
+    history: &History,
+    actions: &Actions,
+    steps: usize,
+    opts: RolloutOptions,
+    step_loss: Option<&LossFn<'_>>,
+) -> Result<HybridRollout> {
     let cfg = net.config();
     let dev = net.device().clone();
-    let n = scene.particles();
-    let steps = opts.steps.min(scene.window.steps);
-    if backbone.num_particles() != n || history.x.iter().chain(&history.v).any(|h| h.len() != n) {
+    let n = backbone.num_particles();
+    if init.x.len() != n
+        || init.v.len() != n
+        || history.x.iter().chain(&history.v).any(|h| h.len() != n)
+    {
         return Err(ResidualError::Input(format!(
-            "scene has {n} particles, backbone {}, history {}",
-            backbone.num_particles(),
+            "backbone has {n} particles, state {}, history {}",
+            init.x.len(),
             history.x[0].len()
         )));
     }
-    let dt = scene.sim_config().step_dt;
+    let held = backbone.held();
+    let train = step_loss.is_some();
+    let dt = backbone.config().step_dt;
     let vs = f64::from(cfg.velocity_scale);
     let mut scratch = backbone.scratch();
-    let mut sim = scene.init.clone();
+    let mut sim = init.clone();
     let mut x = to_tensor(&sim.x, &dev)?;
     let mut v = to_tensor(&sim.v, &dev)?;
     let mut hx = [
@@ -160,10 +236,10 @@ pub fn hybrid_rollout(
     ];
     let mut window: Vec<Tensor> = Vec::with_capacity(cfg.window);
     let mut positions = Vec::with_capacity(steps);
+    let mut velocities = Vec::with_capacity(steps);
     let mut loss: Option<Tensor> = None;
     for step in 0..steps {
-        let (Some(from), Some(to)) = (scene.actions.frame(step), scene.actions.frame(step + 1))
-        else {
+        let (Some(from), Some(to)) = (actions.frame(step), actions.frame(step + 1)) else {
             return Err(ResidualError::Input(format!(
                 "no action frame for step {step}"
             )));
@@ -183,15 +259,20 @@ pub fn hybrid_rollout(
         let x_sim = to_tensor(&sim.x, &dev)?;
         let v_sim = to_tensor(&sim.v, &dev)?;
         let pos = x.broadcast_sub(&c)?;
+        // Earlier and predicted positions enter as displacements from the current position,
+        // expressed like velocities (m per step / dt, times `velocity_scale`): the corrections
+        // the network must find are centimetres, which absolute coordinates (tens of
+        // centimetres) would bury.
+        let ds = vs / f64::from(dt);
         let feats = Tensor::cat(
             &[
                 &pos,
                 &(&v * vs)?,
-                &hx[0].broadcast_sub(&c)?,
-                &hx[1].broadcast_sub(&c)?,
+                &((&hx[0] - &x)? * ds)?,
+                &((&hx[1] - &x)? * (ds / 2.0))?,
                 &(&hv[0] * vs)?,
                 &(&hv[1] * vs)?,
-                &x_sim.broadcast_sub(&c)?,
+                &((&x_sim - &x)? * ds)?,
                 &(&v_sim * vs)?,
             ],
             1,
@@ -211,8 +292,7 @@ pub fn hybrid_rollout(
         if window.len() > cfg.window {
             window.remove(0);
         }
-        let free: Vec<f32> = scene
-            .held
+        let free: Vec<f32> = held
             .iter()
             .map(|&g| {
                 let held = g >= 0 && from.closed.get(g as usize).copied().unwrap_or(false);
@@ -225,12 +305,12 @@ pub fn hybrid_rollout(
             ResidualKind::Velocity => ((&x_sim + (&delta * f64::from(dt))?)?, (&v_sim + &delta)?),
             ResidualKind::Position => ((&x_sim + (&delta * f64::from(dt))?)?, v_sim.clone()),
         };
-        let (nx, nv) = if opts.train {
+        let (nx, nv) = if train {
             (nx, nv)
         } else {
             (nx.detach(), nv.detach())
         };
-        if !opts.train {
+        if !train {
             for w in &mut window {
                 *w = w.detach();
             }
@@ -245,8 +325,8 @@ pub fn hybrid_rollout(
                 what: format!("particle {i} at {:?} m, {:?} m/s", sim.x[i], sim.v[i]),
             });
         }
-        if opts.train {
-            let term = step_loss(scene, step, &nx)?;
+        if let Some(step_loss) = step_loss {
+            let term = step_loss(step, &nx)?;
             loss = Some(match loss {
                 Some(l) => (l + term)?,
                 None => term,
@@ -259,8 +339,13 @@ pub fn hybrid_rollout(
         x = nx;
         v = nv;
         positions.push(sim.x.clone());
+        velocities.push(sim.v.clone());
     }
-    Ok(HybridRollout { positions, loss })
+    Ok(HybridRollout {
+        positions,
+        velocities,
+        loss,
+    })
 }
 
 /// Mean squared distance (cm²) between the tracked particles the tracker saw and the truth.

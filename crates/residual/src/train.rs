@@ -6,11 +6,12 @@ use std::path::Path;
 
 use candle_core::{Tensor, Var};
 use dataset::{Dataset, Episode, Split};
+use glam::Vec3;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use scene::{Protocol, Scene, SceneConfig, Window};
 use serde::{Deserialize, Serialize};
-use springs::{Backbone, SpringParams};
+use springs::{Backbone, SpringParams, State};
 
 use crate::augment::{rotate_history, rotate_scene};
 use crate::{History, ResidualError, ResidualNet, Result, RolloutOptions, hybrid_rollout};
@@ -36,6 +37,31 @@ pub struct TrainConfig {
     pub augment: bool,
     /// Seed of sampling, augmentation and curve shuffling (initialisation uses it too).
     pub seed: u64,
+    /// Where training segments start.
+    #[serde(default)]
+    pub start_from: StartFrom,
+    /// With [`StartFrom::Rollout`]: re-run the hybrid model over every training episode each
+    /// this many optimiser steps, so segments start where the current model actually goes
+    /// (0: keep the backbone's rollout).
+    #[serde(default)]
+    pub refresh_every: usize,
+}
+
+/// The state a training segment starts from.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum StartFrom {
+    /// The model's own rollout from the evaluation start (the state distribution evaluation
+    /// meets: a backbone with springs built at the start frame, then free-running).
+    Rollout,
+    /// The recorded (tracked, noisy) frame, as the reference code does.
+    Recorded,
+    #[default]
+    /// Half the segments from a guided backbone rollout that stays near the truth (each step
+    /// the backbone's state is pulled toward the recorded frame by a velocity change bounded
+    /// like the residual, i.e. the states a good residual model visits), half from the
+    /// model's own rollout (refreshed every `refresh_every` steps).
+    Guided,
 }
 
 impl Default for TrainConfig {
@@ -50,6 +76,8 @@ impl Default for TrainConfig {
             clip: 1.0,
             augment: true,
             seed: 0,
+            start_from: StartFrom::Guided,
+            refresh_every: 0,
         }
     }
 }
@@ -71,6 +99,15 @@ struct TrainEpisode {
     episode: Episode,
     base: Scene,
     backbone: Backbone,
+    history: History,
+}
+
+/// A model's states along an episode's evaluation window: entries 0 and 1 are the history
+/// frames `start − 2`, `start − 1`, entry `k + 2` the state `k` steps after the start.
+#[derive(Clone, Debug)]
+pub(crate) struct Trajectory {
+    x: Vec<Vec<Vec3>>,
+    v: Vec<Vec<Vec3>>,
 }
 
 /// The training episodes of a dataset with the fitted backbone.
@@ -94,23 +131,38 @@ pub struct Sample {
 }
 
 impl TrainSet {
-    /// Loads the `split` episodes of `data` and builds their backbones from `params`.
+    /// Loads the `split` episodes of `data` and builds their backbones from `params`, with
+    /// the paper protocol's evaluation window.
     pub fn new(
         data: &Dataset,
         split: Split,
         params: &SpringParams,
         scene_cfg: &SceneConfig,
     ) -> Result<Self> {
+        Self::with_protocol(data, split, params, scene_cfg, Protocol::Paper)
+    }
+
+    /// As [`TrainSet::new`] with the evaluation window of `protocol` (the window training
+    /// segments of [`StartFrom::Rollout`] / [`StartFrom::Guided`] are drawn from).
+    pub fn with_protocol(
+        data: &Dataset,
+        split: Split,
+        params: &SpringParams,
+        scene_cfg: &SceneConfig,
+        protocol: Protocol,
+    ) -> Result<Self> {
         let mut episodes = Vec::new();
         for i in data.split_indices(split) {
             let episode = data.load_episode(i)?;
-            let window = Protocol::Paper.window(episode.frames())?;
+            let window = protocol.window(episode.frames())?;
             let base = Scene::new(&data.meta, &episode, window, scene_cfg)?;
             let backbone = base.backbone(params, &base.sim_config(), Default::default())?;
+            let history = History::from_episode(&base, &episode, data.meta.fps)?;
             episodes.push(TrainEpisode {
                 episode,
                 base,
                 backbone,
+                history,
             });
         }
         if episodes.is_empty() {
@@ -137,31 +189,152 @@ impl TrainSet {
         self.episodes.is_empty()
     }
 
-    /// A random segment of `steps` steps starting at a frame with two recorded history frames,
-    /// rotated by a random angle about z when `augment`.
+    /// Every episode's trajectory over its evaluation window: the hybrid model's when `net`
+    /// is given (the backbone's where the hybrid diverges), else the backbone's.
+    pub(crate) fn trajectories(&self, net: Option<&ResidualNet>) -> Result<Vec<Trajectory>> {
+        self.episodes
+            .iter()
+            .map(|ep| {
+                let hybrid = match net {
+                    Some(net) => match hybrid_rollout(
+                        net,
+                        &ep.backbone,
+                        &ep.base,
+                        &ep.history,
+                        RolloutOptions::default(),
+                    ) {
+                        Ok(r) => Some((r.positions, r.velocities)),
+                        Err(ResidualError::Diverged { .. }) => None,
+                        Err(e) => return Err(e),
+                    },
+                    None => None,
+                };
+                let (px, pv) = match hybrid {
+                    Some(r) => r,
+                    None => {
+                        let r = ep.backbone.rollout(&ep.base.init, &ep.base.actions)?;
+                        let mut x = r.positions;
+                        let mut v = r.velocities;
+                        x.remove(0);
+                        v.remove(0);
+                        (x, v)
+                    }
+                };
+                let h = &ep.history;
+                let mut x = vec![h.x[1].clone(), h.x[0].clone(), ep.base.init.x.clone()];
+                let mut v = vec![h.v[1].clone(), h.v[0].clone(), ep.base.init.v.clone()];
+                x.extend(px);
+                v.extend(pv);
+                Ok(Trajectory { x, v })
+            })
+            .collect()
+    }
+
+    /// Every episode's guided backbone trajectory: after each backbone step, every free
+    /// tracked particle seen in the next recorded frame gets the velocity change (bounded by
+    /// `bound` m/s per axis) that moves it toward that frame.
+    pub(crate) fn guided_trajectories(&self, bound: f32) -> Result<Vec<Trajectory>> {
+        let dt = 1.0 / self.meta.fps;
+        self.episodes
+            .iter()
+            .map(|ep| {
+                let base = &ep.base;
+                let h = &ep.history;
+                let mut x = vec![h.x[1].clone(), h.x[0].clone(), base.init.x.clone()];
+                let mut v = vec![h.v[1].clone(), h.v[0].clone(), base.init.v.clone()];
+                let mut state = base.init.clone();
+                let mut scratch = ep.backbone.scratch();
+                for step in 0..base.window.steps {
+                    let (Some(from), Some(to)) =
+                        (base.actions.frame(step), base.actions.frame(step + 1))
+                    else {
+                        break;
+                    };
+                    ep.backbone.step(&mut state, from, to, &mut scratch)?;
+                    let seen = &base.visible[step];
+                    let all = !seen.iter().any(|s| *s);
+                    let targets = base.truth[step].iter().zip(seen).zip(&base.held);
+                    for (i, ((target, &seen), &g)) in targets.enumerate() {
+                        let held = g >= 0 && from.closed.get(g as usize).copied().unwrap_or(false);
+                        if held || !(all || seen) {
+                            continue;
+                        }
+                        let dv = ((*target - state.x[i]) / dt)
+                            .clamp(Vec3::splat(-bound), Vec3::splat(bound));
+                        state.x[i] += dv * dt;
+                        state.v[i] += dv;
+                    }
+                    x.push(state.x.clone());
+                    v.push(state.v.clone());
+                }
+                Ok(Trajectory { x, v })
+            })
+            .collect()
+    }
+
+    /// A random segment of `steps` steps from a recorded frame with two recorded history
+    /// frames before it, rotated by a random angle about z when `augment` (the reference
+    /// code's sampling, [`StartFrom::Recorded`]).
     pub fn sample(&self, rng: &mut ChaCha8Rng, steps: usize, augment: bool) -> Result<Sample> {
+        self.sample_from(rng, steps, augment, None)
+    }
+
+    /// A random segment of `steps` steps, rotated by a random angle about z when `augment`.
+    /// With `starts` it begins at a random step of the episode's evaluation window from the
+    /// state of that trajectory; without, at a random frame with two recorded history frames
+    /// from the recorded state.
+    pub(crate) fn sample_from(
+        &self,
+        rng: &mut ChaCha8Rng,
+        steps: usize,
+        augment: bool,
+        starts: Option<&[Trajectory]>,
+    ) -> Result<Sample> {
         let e = rng.random_range(0..self.episodes.len());
         let ep = &self.episodes[e];
-        let frames = ep.episode.frames();
-        let first = ep.base.window.start.max(2);
-        if frames < first + steps + 1 {
-            return Err(ResidualError::Input(format!(
-                "episode of {frames} frames is too short for {steps}-step segments"
-            )));
-        }
-        let start = rng.random_range(first..=frames - steps - 1);
-        let scene = Scene::new(
-            &self.meta,
-            &ep.episode,
-            Window { start, steps },
-            &self.scene_cfg,
-        )?;
-        let backbone = if scene.particles() == ep.base.particles() {
-            None
-        } else {
-            Some(scene.backbone(&self.params, &scene.sim_config(), Default::default())?)
+        let (scene, history, backbone) = match starts.and_then(|s| s.get(e)) {
+            Some(traj) => {
+                let span = ep.base.window.steps;
+                if span < steps {
+                    return Err(ResidualError::Input(format!(
+                        "evaluation window of {span} steps is too short for {steps}-step segments"
+                    )));
+                }
+                let k = rng.random_range(0..=span - steps);
+                let init = State {
+                    x: traj.x[k + 2].clone(),
+                    v: traj.v[k + 2].clone(),
+                };
+                let history = History {
+                    x: [traj.x[k + 1].clone(), traj.x[k].clone()],
+                    v: [traj.v[k + 1].clone(), traj.v[k].clone()],
+                };
+                (ep.base.segment(k, steps, init)?, history, None)
+            }
+            None => {
+                let frames = ep.episode.frames();
+                let first = ep.base.window.start.max(2);
+                if frames < first + steps + 1 {
+                    return Err(ResidualError::Input(format!(
+                        "episode of {frames} frames is too short for {steps}-step segments"
+                    )));
+                }
+                let start = rng.random_range(first..=frames - steps - 1);
+                let scene = Scene::new(
+                    &self.meta,
+                    &ep.episode,
+                    Window { start, steps },
+                    &self.scene_cfg,
+                )?;
+                let backbone = if scene.particles() == ep.base.particles() {
+                    None
+                } else {
+                    Some(scene.backbone(&self.params, &scene.sim_config(), Default::default())?)
+                };
+                let history = History::from_episode(&scene, &ep.episode, self.meta.fps)?;
+                (scene, history, backbone)
+            }
         };
-        let history = History::from_episode(&scene, &ep.episode, self.meta.fps)?;
         let angle = if augment {
             rng.random_range(0.0..std::f32::consts::TAU)
         } else {
@@ -216,6 +389,8 @@ pub struct Trainer {
     vars: Vec<(String, Var)>,
     m: Vec<Tensor>,
     v: Vec<Tensor>,
+    starts: Option<Vec<Trajectory>>,
+    guided: Option<Vec<Trajectory>>,
 }
 
 const BETA1: f64 = 0.9;
@@ -238,6 +413,8 @@ impl Trainer {
             vars,
             m,
             v,
+            starts: None,
+            guided: None,
         })
     }
 
@@ -249,9 +426,28 @@ impl Trainer {
 
     /// One optimiser step on a batch drawn from `set`.
     pub fn train_step(&mut self, set: &TrainSet) -> Result<StepStats> {
+        if self.cfg.start_from == StartFrom::Guided && self.guided.is_none() {
+            self.guided = Some(set.guided_trajectories(self.net.config().residual_scale)?);
+        }
+        if self.cfg.start_from != StartFrom::Recorded {
+            let every = self.cfg.refresh_every;
+            if every > 0 && self.step > 0 && self.step.is_multiple_of(every) {
+                self.starts = Some(set.trajectories(Some(&self.net))?);
+            } else if self.starts.is_none() {
+                self.starts = Some(set.trajectories(None)?);
+            }
+        }
         let mut rng = self.rng_at(self.step);
         let samples = (0..self.cfg.batch)
-            .map(|_| set.sample(&mut rng, self.cfg.rollout_steps, self.cfg.augment))
+            .map(|b| {
+                let starts = match self.cfg.start_from {
+                    StartFrom::Rollout => self.starts.as_deref(),
+                    StartFrom::Guided if b % 2 == 0 => self.guided.as_deref(),
+                    StartFrom::Guided => self.starts.as_deref(),
+                    StartFrom::Recorded => None,
+                };
+                set.sample_from(&mut rng, self.cfg.rollout_steps, self.cfg.augment, starts)
+            })
             .collect::<Result<Vec<_>>>()?;
         self.train_on(set, &samples)
     }
@@ -360,6 +556,12 @@ impl Trainer {
             map.insert(format!("adam_m.{name}"), self.m[i].clone());
             map.insert(format!("adam_v.{name}"), self.v[i].clone());
         }
+        // The segment starts are part of the state: a resumed run must sample from the same
+        // trajectories as an uninterrupted one.
+        for (e, traj) in self.starts.iter().flatten().enumerate() {
+            map.insert(format!("start.{e}.x"), stack(&traj.x, self.net.device())?);
+            map.insert(format!("start.{e}.v"), stack(&traj.v, self.net.device())?);
+        }
         let tmp = path.with_extension("tmp");
         candle_core::safetensors::save(&map, &tmp)?;
         std::fs::rename(&tmp, path).map_err(|source| ResidualError::Io {
@@ -388,6 +590,17 @@ impl Trainer {
             self.m[i] = get(format!("adam_m.{name}"))?;
             self.v[i] = get(format!("adam_v.{name}"))?;
         }
+        let mut starts = Vec::new();
+        while let (Some(x), Some(v)) = (
+            map.get(&format!("start.{}.x", starts.len())),
+            map.get(&format!("start.{}.v", starts.len())),
+        ) {
+            starts.push(Trajectory {
+                x: unstack(x)?,
+                v: unstack(v)?,
+            });
+        }
+        self.starts = (!starts.is_empty()).then_some(starts);
         let json = path.with_extension("json");
         let text = std::fs::read_to_string(&json).map_err(|source| ResidualError::Io {
             path: json.display().to_string(),
@@ -401,4 +614,28 @@ impl Trainer {
         self.step = v["step"].as_u64().unwrap_or(0) as usize;
         Ok(())
     }
+}
+
+/// `(T, N, 3)` tensor of a sequence of particle arrays.
+fn stack(frames: &[Vec<Vec3>], dev: &candle_core::Device) -> Result<Tensor> {
+    let n = frames.first().map_or(0, Vec::len);
+    let flat: Vec<f32> = frames
+        .iter()
+        .flat_map(|f| f.iter().flat_map(|p| p.to_array()))
+        .collect();
+    Ok(Tensor::from_vec(flat, (frames.len(), n, 3), dev)?)
+}
+
+/// Inverse of [`stack`].
+fn unstack(t: &Tensor) -> Result<Vec<Vec<Vec3>>> {
+    let (_, n, _) = t.dims3()?;
+    let flat: Vec<f32> = t.flatten_all()?.to_vec1()?;
+    Ok(flat
+        .chunks_exact(3 * n.max(1))
+        .map(|f| {
+            f.chunks_exact(3)
+                .map(|c| Vec3::new(c[0], c[1], c[2]))
+                .collect()
+        })
+        .collect())
 }

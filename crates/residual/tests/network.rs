@@ -149,6 +149,58 @@ fn checkpoint_reloads_to_identical_predictions() {
     std::fs::remove_dir_all(dir).ok();
 }
 
+/// `predict` (a planner's entry point: state, history, actions, no truth) runs the same model
+/// as the scene-based rollout, and a segment of a scene continues it exactly.
+#[test]
+fn predict_matches_the_scene_rollout_and_segments_continue_it() {
+    let (_, _, scene, history, bb) = common::scene("rope", 1);
+    let net = ResidualNet::new(&ModelConfig::tiny(), 3).unwrap();
+    let opts = RolloutOptions {
+        steps: 6,
+        ..Default::default()
+    };
+    let full = hybrid_rollout(&net, &bb, &scene, &history, opts).unwrap();
+    let pred = residual::predict(&net, &bb, &scene.init, &history, &scene.actions, 6).unwrap();
+    assert_eq!(pred, full.positions);
+    // Three steps in, from the rollout's own state and history: the same next three steps
+    // (the temporal window restarts empty, so allow float-level differences only where the
+    // window matters: compare with a tolerance well below the residual's 1 cm/step reach).
+    let k = 3;
+    let init = springs::State {
+        x: full.positions[k - 1].clone(),
+        v: full.velocities[k - 1].clone(),
+    };
+    let hist = residual::History {
+        x: [full.positions[k - 2].clone(), full.positions[k - 3].clone()],
+        v: [
+            full.velocities[k - 2].clone(),
+            full.velocities[k - 3].clone(),
+        ],
+    };
+    let seg = scene.segment(k, 3, init).unwrap();
+    assert_eq!(seg.truth[0], scene.truth[k]);
+    let rest = hybrid_rollout(&net, &bb, &seg, &hist, opts).unwrap();
+    assert_eq!(rest.positions.len(), 3);
+    for (a, b) in rest.positions.iter().zip(&full.positions[k..]) {
+        let worst = a
+            .iter()
+            .zip(b)
+            .map(|(p, q)| (*p - *q).length())
+            .fold(0.0, f32::max);
+        assert!(
+            worst < 5e-3,
+            "segment departs from the rollout by {worst} m"
+        );
+    }
+    // Too few action frames is an error, not a panic.
+    assert!(residual::predict(&net, &bb, &scene.init, &history, &scene.actions, 10_000).is_err());
+    assert!(
+        scene
+            .segment(scene.window.steps, 1, scene.init.clone())
+            .is_err()
+    );
+}
+
 #[test]
 fn same_seed_same_network() {
     let a = ResidualNet::new(&ModelConfig::tiny(), 9).unwrap();

@@ -170,6 +170,51 @@ impl Scene {
         )?)
     }
 
+    /// The part of this scene that starts `offset` steps after its start and runs `steps`
+    /// steps, from `init` (a state of every simulated particle, e.g. a model's own rollout
+    /// state at that frame). Particles, held map and settings stay those of `self`.
+    pub fn segment(&self, offset: usize, steps: usize, init: State) -> Result<Scene, SceneError> {
+        let end = offset + steps;
+        if steps == 0 || end > self.window.steps {
+            return Err(SceneError::TooShort {
+                frames: self.window.steps + 1,
+                needed: end + 1,
+                protocol: "segment",
+            });
+        }
+        let n = self.particles();
+        for (what, got) in [
+            ("segment positions", init.x.len()),
+            ("segment velocities", init.v.len()),
+        ] {
+            if got != n {
+                return Err(springs::SimError::LengthMismatch {
+                    what,
+                    expected: n,
+                    got,
+                }
+                .into());
+            }
+        }
+        let frames = (offset..=end).filter_map(|t| self.actions.frame(t));
+        let (positions, closed) = frames
+            .map(|f| (f.positions.to_vec(), f.closed.to_vec()))
+            .unzip();
+        Ok(Scene {
+            window: Window {
+                start: self.window.start + offset,
+                steps,
+            },
+            tracked: self.tracked,
+            held: self.held.clone(),
+            init,
+            actions: Actions::new(positions, closed)?,
+            truth: self.truth[offset..end].to_vec(),
+            visible: self.visible[offset..end].to_vec(),
+            config: self.config,
+        })
+    }
+
     /// Rolls the backbone out over the window; returns the tracked particles' positions after
     /// each step (`steps` entries), m.
     pub fn rollout(
