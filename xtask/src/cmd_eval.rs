@@ -10,7 +10,7 @@ use rayon::prelude::*;
 use scene::{Protocol, SceneConfig, StepErrors};
 use serde::Serialize;
 
-use crate::common::{ProtocolArg, load_scenes, read_backbone};
+use crate::common::{ProtocolArg, load_scenes, predict_tracked, read_backbone, read_residual};
 use crate::report::{Curve, plot_curves, write_json};
 
 /// Arguments of `eval`.
@@ -37,6 +37,10 @@ pub struct EvalArgs {
     /// Skip exact EMD (faster on large clouds).
     #[arg(long)]
     pub no_emd: bool,
+    /// Also score action-conditioned video prediction (J, F, LPIPS; `cargo xtask render`)
+    /// against the dataset's ground-truth Gaussians (reference-world data only).
+    #[arg(long)]
+    pub visual: bool,
 }
 
 /// A metric's summary in cm.
@@ -101,15 +105,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
     let backbone = read_backbone(&args.run)?;
     let protocol: Protocol = args.protocol.into();
     let scenes = load_scenes(&data, args.split, protocol, &SceneConfig::default())?;
-    let residual_path = args.run.join("residual.safetensors");
-    let net = if residual_path.exists() {
-        Some(
-            residual::ResidualNet::load(&residual_path)
-                .with_context(|| format!("loading {}", residual_path.display()))?,
-        )
-    } else {
-        None
-    };
+    let net = read_residual(&args.run)?;
     let model_name = if net.is_some() {
         "pgrd".to_string()
     } else {
@@ -129,34 +125,22 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
         None => vec![None; scenes.len()],
     };
     let t_roll = Instant::now();
-    let results: Vec<anyhow::Result<(Vec<StepErrors>, f64)>> = scenes
+    type Scored<'a> = (
+        Vec<StepErrors>,
+        f64,
+        (usize, &'a scene::Scene, Vec<Vec<glam::Vec3>>),
+    );
+    let results: Vec<anyhow::Result<Scored<'_>>> = scenes
         .par_iter()
         .zip(&histories)
         .map(|((i, scene), history)| {
-            let pred = match (&net, history) {
-                (Some(net), Some(history)) => {
-                    let bb = scene.backbone(
-                        &backbone.params,
-                        &scene.sim_config(),
-                        Default::default(),
-                    )?;
-                    let out =
-                        residual::hybrid_rollout(net, &bb, scene, history, Default::default())
-                            .with_context(|| format!("episode {i}"))?;
-                    out.positions
-                        .into_iter()
-                        .map(|mut p| {
-                            p.truncate(scene.tracked);
-                            p
-                        })
-                        .collect()
-                }
-                _ => scene
-                    .rollout(&backbone.params, &scene.sim_config(), Default::default())
-                    .with_context(|| format!("episode {i}"))?,
-            };
+            let pred = predict_tracked(scene, &backbone.params, net.as_ref(), history.as_ref())
+                .with_context(|| format!("episode {i}"))?;
             let errors = scene::score_steps(scene, &pred, !args.no_emd)?;
-            Ok((errors, scene::deform_l1(scene, &pred)?))
+            let l1 = scene::deform_l1(scene, &pred)?;
+            // The predictions are kept only for the video metrics.
+            let kept = if args.visual { pred } else { Vec::new() };
+            Ok((errors, l1, (*i, scene, kept)))
         })
         .collect();
     let rollout_wall_s = t_roll.elapsed().as_secs_f64();
@@ -198,7 +182,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
     let curve = |f: fn(&StepErrors) -> f64| -> Vec<Vec<f64>> {
         per_episode
             .iter()
-            .map(|(e, _)| e.iter().map(f).collect())
+            .map(|(e, _, _)| e.iter().map(f).collect())
             .collect()
     };
     let (mde, mde_steps) = summary(
@@ -248,11 +232,19 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
         });
     }
     if matches!(protocol, Protocol::Deform) {
-        let l1 = per_episode.iter().map(|(_, l)| l).sum::<f64>() / per_episode.len() as f64;
+        let l1 = per_episode.iter().map(|(_, l, _)| l).sum::<f64>() / per_episode.len() as f64;
         metrics["deform_l1_m"] = serde_json::json!({
             "mean": l1,
             "convention": "DEFORM: mean |coordinate error| over all markers (driven included), summed over steps / frames"
         });
+    }
+    if args.visual {
+        let predictions: Vec<_> = per_episode.iter().map(|(_, _, p)| p.clone()).collect();
+        metrics["visual"] = crate::cmd_render::visual_metrics(
+            &data,
+            &predictions,
+            &crate::cmd_render::VideoOptions::default(),
+        )?;
     }
     let split = args.split.to_string();
     let plot = args
@@ -302,8 +294,20 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
             )
         })
         .unwrap_or_default();
+    let visual_text = m
+        .get("visual")
+        .map(|v| {
+            let x = |k: &str| v[k]["mean"].as_f64().unwrap_or(f64::NAN);
+            format!(
+                ", J {:.3}, F {:.3}, LPIPS {:.4}",
+                x("j"),
+                x("f"),
+                x("lpips")
+            )
+        })
+        .unwrap_or_default();
     println!(
-        "{} {} on {} ({} {split} episodes, {} steps): MDE {:.3} ± {:.3} cm, Chamfer {:.3} ± {:.3} cm [two-sided sum]{emd_text}{}  ({:.1} s) -> {}",
+        "{} {} on {} ({} {split} episodes, {} steps): MDE {:.3} ± {:.3} cm, Chamfer {:.3} ± {:.3} cm [two-sided sum]{emd_text}{}{visual_text}  ({:.1} s) -> {}",
         report.model,
         report.protocol,
         report.object,

@@ -84,3 +84,41 @@ pub fn read_backbone(run: &Path) -> anyhow::Result<BackboneFile> {
         .with_context(|| format!("reading {} (run `cargo xtask fit` first)", path.display()))?;
     serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))
 }
+
+/// The run's residual network, `<run>/residual.safetensors`, when it has one (the model is then
+/// PGRD; without it, the fitted backbone alone).
+pub fn read_residual(run: &Path) -> anyhow::Result<Option<residual::ResidualNet>> {
+    let path = run.join("residual.safetensors");
+    if !path.exists() {
+        return Ok(None);
+    }
+    residual::ResidualNet::load(&path)
+        .map(Some)
+        .with_context(|| format!("loading {}", path.display()))
+}
+
+/// Rolls the run's model out over `scene`'s window: the backbone with `params`, plus the
+/// residual network when `net` is given (it needs the episode's `history`). Returns the tracked
+/// particles' positions after each step (`scene.window.steps` entries), m.
+pub fn predict_tracked(
+    scene: &Scene,
+    params: &springs::SpringParams,
+    net: Option<&residual::ResidualNet>,
+    history: Option<&residual::History>,
+) -> anyhow::Result<Vec<Vec<glam::Vec3>>> {
+    Ok(match (net, history) {
+        (Some(net), Some(history)) => {
+            let bb = scene.backbone(params, &scene.sim_config(), Default::default())?;
+            residual::hybrid_rollout(net, &bb, scene, history, Default::default())?
+                .positions
+                .into_iter()
+                .map(|mut p| {
+                    p.truncate(scene.tracked);
+                    p
+                })
+                .collect()
+        }
+        (Some(_), None) => anyhow::bail!("the residual network needs the episode's history"),
+        _ => scene.rollout(params, &scene.sim_config(), Default::default())?,
+    })
+}

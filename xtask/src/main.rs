@@ -10,6 +10,8 @@ mod cmd_fit;
 mod cmd_gen;
 mod cmd_import;
 mod cmd_metrics;
+mod cmd_plan;
+mod cmd_render;
 mod cmd_train;
 mod common;
 mod report;
@@ -37,6 +39,10 @@ enum Command {
     Eval(cmd_eval::EvalArgs),
     /// Point-cloud metrics of two .npy clouds as JSON (MDE, Chamfer, EMD).
     Metrics(cmd_metrics::MetricsArgs),
+    /// Render a run's predicted and the ground-truth frames of an episode; J, F, LPIPS.
+    Render(cmd_render::RenderArgs),
+    /// MPPI planning with a run's model, executed in closed loop in the reference world.
+    Plan(cmd_plan::PlanArgs),
     /// Train the residual network (PGRD) on top of a run's fitted backbone.
     Train(cmd_train::TrainArgs),
     /// Convert another dataset format into a pgrd dataset.
@@ -53,6 +59,8 @@ fn main() -> anyhow::Result<()> {
         Command::Eval(args) => cmd_eval::run(&args).map(drop),
         Command::Import(args) => cmd_import::run(&args),
         Command::Metrics(args) => cmd_metrics::run(&args),
+        Command::Plan(args) => cmd_plan::run(&args),
+        Command::Render(args) => cmd_render::run(&args),
         Command::Train(args) => cmd_train::run(&args),
     }
 }

@@ -3,7 +3,7 @@
 use glam::Vec3;
 use serde::{Deserialize, Serialize};
 
-use crate::SimError;
+use crate::{Obstacles, SimError};
 
 /// How the substep length is chosen.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -62,6 +62,9 @@ pub struct SimConfig {
     pub gripper_radius: f32,
     /// Substep selection.
     pub substep: Substep,
+    /// Box obstacles free particles cannot enter (default none; see [`Obstacles`]).
+    #[serde(default, skip_serializing_if = "Obstacles::is_empty")]
+    pub obstacles: Obstacles,
 }
 
 impl Default for SimConfig {
@@ -74,6 +77,7 @@ impl Default for SimConfig {
             manipulation: Manipulation::Grasp,
             gripper_radius: 0.04,
             substep: Substep::AUTO,
+            obstacles: Obstacles::NONE,
         }
     }
 }
@@ -113,6 +117,7 @@ impl SimConfig {
                 "must be finite and >= 0",
             ));
         }
+        self.obstacles.validate()?;
         match self.substep {
             Substep::Auto { safety, max_dt } => {
                 if !(safety > 0.0 && safety <= 1.0) {

@@ -33,6 +33,7 @@ mod effects;
 mod error;
 mod fill;
 mod kernels;
+mod obstacles;
 mod params;
 mod step;
 mod topology;
@@ -43,6 +44,7 @@ pub use config::{Manipulation, SimConfig, Substep};
 pub use effects::{AirDrag, Effect, GroundContact, ModelSetup, SubstepContext};
 pub use error::SimError;
 pub use fill::fill_interior;
+pub use obstacles::{BoxObstacle, Obstacles};
 pub use params::{
     DIVERGENCE_LIMIT, GROUND_DAMPING, GROUND_MU, GROUND_STIFFNESS, GROUND_VISCOUS_FRICTION,
     PAPER_BOUNDS, ParamBounds, REFERENCE_BOUNDS, SpringParams,

@@ -346,6 +346,15 @@ impl Backbone {
             if self.config.manipulation == Manipulation::Push {
                 self.push(sc);
             }
+            if !self.config.obstacles.is_empty() {
+                crate::obstacles::resolve(
+                    self.config.obstacles.as_slice(),
+                    self.mu,
+                    &mut sc.x[..n],
+                    &mut sc.v[..n],
+                    &sc.inv_m_eff[..n],
+                );
+            }
             if !self.effects.is_empty() {
                 let ctx = SubstepContext {
                     backbone: self,

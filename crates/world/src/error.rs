@@ -37,6 +37,14 @@ pub enum Error {
     /// The dataset could not be built or written.
     #[error(transparent)]
     Dataset(#[from] dataset::Error),
+    /// A file could not be read or is not what it claims to be.
+    #[error("{path}: {message}")]
+    Read {
+        /// The file.
+        path: PathBuf,
+        /// What went wrong.
+        message: String,
+    },
     /// A file could not be written.
     #[error("{path}: {message}")]
     Write {

@@ -12,6 +12,7 @@ use serde::{Deserialize, Serialize};
 use crate::build::{Blueprint, Resolution, blueprint};
 use crate::record::{PUSH_RADIUS, Recording, SETTLE_S, STEP_S, Scene, record};
 use crate::rng::{stream, tag};
+use crate::truth_gaussians::{self, TruthGaussians};
 use crate::{EffectKind, Effects, Error, ObjectKind, Observation};
 
 /// Stored frames per second (one model step is 0.1 s).
@@ -46,7 +47,15 @@ pub struct GenConfig {
     pub resolution: Resolution,
     /// Seed of every random choice.
     pub seed: u64,
+    /// At most this many fine surface particles carry ground-truth Gaussians, written as
+    /// `truth_ep_NNNN.safetensors` beside each episode ([`TruthGaussians`]); 0 writes none.
+    pub gaussian_particles: usize,
 }
+
+/// Default cap on the fine particles carrying ground-truth Gaussians in a full dataset.
+pub const DEFAULT_GAUSSIAN_PARTICLES: usize = 600;
+/// The cap in the fixtures (kept small: fixtures are committed).
+pub const FIXTURE_GAUSSIAN_PARTICLES: usize = 300;
 
 /// Default number of tracked particles of each object's full dataset.
 pub fn default_tracked(object: ObjectKind) -> usize {
@@ -60,7 +69,8 @@ pub fn default_tracked(object: ObjectKind) -> usize {
 
 impl GenConfig {
     /// The full default dataset: default effects and observation, 100 train + 20 val episodes of
-    /// 10-episode recordings, full resolution, seed 0.
+    /// 10-episode recordings, full resolution, seed 0, ground-truth Gaussians on at most 600
+    /// fine particles.
     pub fn new(object: ObjectKind) -> Self {
         GenConfig {
             object,
@@ -72,17 +82,20 @@ impl GenConfig {
             tracked: default_tracked(object),
             resolution: Resolution::Full,
             seed: 0,
+            gaussian_particles: DEFAULT_GAUSSIAN_PARTICLES,
         }
     }
 
     /// The small dataset kept in `fixtures/<object>/`: 3 train + 2 val episodes, 150 tracked
-    /// particles, coarse resolution, default effects and observation, seed 0.
+    /// particles, coarse resolution, default effects and observation, seed 0, ground-truth
+    /// Gaussians on at most 300 fine particles.
     pub fn fixture(object: ObjectKind) -> Self {
         GenConfig {
             train_episodes: 3,
             val_episodes: 2,
             tracked: 150,
             resolution: Resolution::Coarse,
+            gaussian_particles: FIXTURE_GAUSSIAN_PARTICLES,
             ..GenConfig::new(object)
         }
     }
@@ -181,6 +194,10 @@ pub struct Truth {
     pub tracked_indices: Vec<u32>,
     /// Fine particles held by the gripper (0 for pushed objects).
     pub held_fine_particles: usize,
+    /// Fine particles carrying ground-truth Gaussians in `truth_ep_NNNN.safetensors` (0: no
+    /// such files).
+    #[serde(default)]
+    pub gaussian_particles: usize,
     /// The recordings.
     pub recordings: Vec<RecordingInfo>,
 }
@@ -194,10 +211,14 @@ pub struct GeneratedDataset {
     pub episodes: Vec<(Episode, Split)>,
     /// Ground truth.
     pub truth: Truth,
+    /// Ground-truth Gaussians of each episode, in dataset order (empty when
+    /// [`GenConfig::gaussian_particles`] is 0).
+    pub gaussians: Vec<TruthGaussians>,
 }
 
 impl GeneratedDataset {
-    /// Writes `dataset.json`, the episodes and `truth.json` into `dir` (created if needed).
+    /// Writes `dataset.json`, the episodes, `truth.json` and the episodes' ground-truth
+    /// Gaussians (`truth_ep_NNNN.safetensors`) into `dir` (created if needed).
     pub fn write(&self, dir: impl AsRef<Path>) -> Result<Dataset, Error> {
         let dir = dir.as_ref();
         let mut writer = DatasetWriter::create(dir, self.meta.clone())?;
@@ -212,6 +233,9 @@ impl GeneratedDataset {
         })?;
         text.push('\n');
         dataset::write_atomic(&path, text.as_bytes())?;
+        for (index, g) in self.gaussians.iter().enumerate() {
+            g.write(TruthGaussians::path(dir, index))?;
+        }
         Ok(data)
     }
 }
@@ -242,6 +266,7 @@ pub fn generate_with_progress(
     cfg.validate()?;
     let bp = blueprint(cfg.object, cfg.resolution, cfg.seed);
     let tracked = select_tracked(&bp, cfg.tracked, cfg.seed)?;
+    let gaussian_particles = truth_gaussians::select(&bp, cfg.gaussian_particles);
 
     // Recordings: training ones first, then validation ones; indices are global so splits never
     // share a recording.
@@ -263,6 +288,7 @@ pub fn generate_with_progress(
         effects: &cfg.effects,
         observation: &cfg.observation,
         tracked: &tracked,
+        gaussian_particles: &gaussian_particles,
         seed: cfg.seed,
     };
     let done = AtomicUsize::new(0);
@@ -283,9 +309,22 @@ pub fn generate_with_progress(
         .collect();
     let colors: Vec<[f32; 3]> = tracked.iter().map(|&i| bp.colors[i as usize]).collect();
     let n = tracked.len();
+    let sigmas = truth_gaussians::sigmas(&bp, &gaussian_particles);
+    let mut gaussians = Vec::new();
     let mut episodes = Vec::new();
     let mut infos = Vec::new();
     for ((index, split, e), rec) in plans.iter().zip(&recordings) {
+        if !gaussian_particles.is_empty() {
+            let starts: Vec<usize> = (0..*e).map(|j| j * EPISODE_STRIDE).collect();
+            gaussians.extend(truth_gaussians::episodes(
+                &bp,
+                &gaussian_particles,
+                &sigmas,
+                &rec.fine,
+                &starts,
+                FRAMES_PER_EPISODE,
+            )?);
+        }
         let mut ids = Vec::new();
         for j in 0..*e {
             let f0 = j * EPISODE_STRIDE;
@@ -365,6 +404,7 @@ pub fn generate_with_progress(
         fine_particles: bp.len(),
         tracked_indices: tracked,
         held_fine_particles: bp.held.len(),
+        gaussian_particles: gaussian_particles.len(),
         recordings: infos,
     };
     debug_assert!((STEP_S * FPS - 1.0).abs() < 1e-6);
@@ -372,6 +412,7 @@ pub fn generate_with_progress(
         meta,
         episodes,
         truth,
+        gaussians,
     })
 }
 

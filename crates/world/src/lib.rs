@@ -13,8 +13,10 @@
 //! - **an observation model** ([`Observation`]): tracking noise, slow drift, occlusion.
 //!
 //! [`generate`] builds a dataset in memory from a [`GenConfig`]; [`GeneratedDataset::write`]
-//! writes it with a `truth.json` recording effects and parameters. Formulas, defaults and timings
-//! are in `docs/world.md`. Units: metres, seconds, kilograms; z up, ground at z = 0.
+//! writes it with a `truth.json` recording effects and parameters, and per episode the fine
+//! surface particles' own Gaussians and true trajectories ([`TruthGaussians`],
+//! `truth_ep_NNNN.safetensors`), the ground truth for rendered frames. Formulas, defaults and
+//! timings are in `docs/world.md`. Units: metres, seconds, kilograms; z up, ground at z = 0.
 //!
 //! ```
 //! use world::{GenConfig, ObjectKind};
@@ -34,10 +36,13 @@ mod lab;
 mod motion;
 mod object;
 mod observation;
+mod obstacles;
+mod plant;
 mod record;
 mod render;
 mod rng;
 mod sim;
+mod truth_gaussians;
 
 pub use build::Resolution;
 pub use effects::{
@@ -46,11 +51,16 @@ pub use effects::{
 };
 pub use error::Error;
 pub use generate::{
-    EPISODE_STRIDE, EVAL_STEPS, FPS, FRAMES_PER_EPISODE, GenConfig, GeneratedDataset,
-    HISTORY_FRAMES, MaterialInfo, RecordingInfo, TimingInfo, Truth, default_tracked, generate,
-    generate_with_progress,
+    DEFAULT_GAUSSIAN_PARTICLES, EPISODE_STRIDE, EVAL_STEPS, FIXTURE_GAUSSIAN_PARTICLES, FPS,
+    FRAMES_PER_EPISODE, GenConfig, GeneratedDataset, HISTORY_FRAMES, MaterialInfo, RecordingInfo,
+    TimingInfo, Truth, default_tracked, generate, generate_with_progress,
 };
 pub use lab::Lab;
 pub use object::ObjectKind;
 pub use observation::Observation;
+pub use obstacles::BoxObstacle;
+pub use plant::{Plant, PlantConfig};
 pub use render::render_strip;
+pub use truth_gaussians::{
+    SIGMA_PER_SPACING, TRUTH_GAUSSIANS_FORMAT, TRUTH_OPACITY, TruthGaussians,
+};

@@ -27,6 +27,8 @@ pub(crate) struct Scene<'a> {
     pub effects: &'a Effects,
     pub observation: &'a Observation,
     pub tracked: &'a [u32],
+    /// Fine particles whose true positions are kept for ground-truth rendering.
+    pub gaussian_particles: &'a [u32],
     pub seed: u64,
 }
 
@@ -38,6 +40,8 @@ pub(crate) struct Recording {
     pub visible: Vec<u8>,
     /// Recorded (commanded) gripper positions `[frames]`, m.
     pub grippers: Vec<Vec3>,
+    /// True positions of the scene's `gaussian_particles` `[frames × m]`, m.
+    pub fine: Vec<Vec3>,
 }
 
 /// The grasp mode implied by the effects for `n` held particles.
@@ -100,12 +104,14 @@ pub(crate) fn record(scene: &Scene<'_>, index: u64, frames: usize) -> Result<Rec
     let n = scene.tracked.len();
     let mut truth = Vec::with_capacity(frames * n);
     let mut grippers = Vec::with_capacity(frames);
+    let mut fine = Vec::with_capacity(frames * scene.gaussian_particles.len());
     for k in 0..frames {
         let t = k as f32 * STEP_S;
         if let Some(p) = &planner {
             p.extend(&mut motion, &sim.x, t + lag + 2.0, &mut motion_rng);
         }
         truth.extend(scene.tracked.iter().map(|&i| sim.x[i as usize]));
+        fine.extend(scene.gaussian_particles.iter().map(|&i| sim.x[i as usize]));
         grippers.push(motion.at(t));
         if k + 1 == frames {
             break;
@@ -130,5 +136,6 @@ pub(crate) fn record(scene: &Scene<'_>, index: u64, frames: usize) -> Result<Rec
         observed,
         visible,
         grippers,
+        fine,
     })
 }

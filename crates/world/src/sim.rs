@@ -84,6 +84,8 @@ pub(crate) struct Sim {
     push_radius: Option<f32>,
     /// Extra velocity damping rate, 1/s (only while settling before a recording).
     pub settle_rate: f32,
+    /// Box obstacles (none in generated datasets).
+    pub obstacles: Vec<crate::obstacles::BoxObstacle>,
 }
 
 impl Sim {
@@ -172,6 +174,7 @@ impl Sim {
             grasp: GraspMode::Kinematic,
             push_radius: push,
             settle_rate: 0.0,
+            obstacles: Vec::new(),
         }
     }
 
@@ -247,6 +250,17 @@ impl Sim {
         }
         if let Some(z) = self.ground {
             self.solve_ground(z);
+        }
+        if !self.obstacles.is_empty() {
+            crate::obstacles::solve_boxes(
+                &self.obstacles,
+                &mut self.x,
+                &self.x0,
+                &self.w,
+                self.contact,
+                self.mu_static,
+                self.mu_kinetic,
+            );
         }
         let inv_h = 1.0 / h;
         for ((v, x), x0) in self.v.iter_mut().zip(&self.x).zip(&self.x0) {

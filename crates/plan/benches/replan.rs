@@ -1,0 +1,87 @@
+//! One MPPI replanning step at the paper's cable-rerouting settings (15 samples, horizon 15,
+//! 6 iterations: 1350 model steps) on the rerouting task's rope (150 observed points), with the
+//! spring-mass backbone and, when `PGRD_RESIDUAL` names a `residual.safetensors`, with PGRD.
+//! Run with `RAYON_NUM_THREADS=2` to match the 2-core budget of `docs/plan.md`. Besides the
+//! wall time, it prints the process CPU time per replanning step (all threads, from
+//! `/proc/self/stat` on Linux), which other jobs on a shared machine do not inflate.
+#![allow(missing_docs)] // criterion_group! generates an undocumented pub fn
+
+use std::hint::black_box;
+use std::sync::Arc;
+
+use criterion::{Criterion, criterion_group, criterion_main};
+use plan::{ForwardModel, ModelState, Mppi, Pgrd, SpringMass, Task, TaskConfig, TaskKind};
+
+fn replan(c: &mut Criterion) {
+    let task = Task::build(TaskKind::Reroute, &TaskConfig::new()).expect("rerouting task");
+    let params = springs::SpringParams::reference_rope();
+    let objective = task.objective().expect("objective");
+    let state = ModelState::at_rest(task.start.observe());
+    let grippers = [task.start.gripper()];
+    let mut models: Vec<Box<dyn ForwardModel>> = vec![Box::new(SpringMass::new(
+        task.backbone(params).expect("backbone"),
+    ))];
+    if let Ok(path) = std::env::var("PGRD_RESIDUAL") {
+        let net = residual::ResidualNet::load(std::path::Path::new(&path)).expect("residual");
+        models.push(Box::new(Pgrd::new(
+            task.backbone(params).expect("backbone"),
+            Arc::new(net),
+        )));
+    }
+    for model in &models {
+        cpu_time_per_replan(model.as_ref(), &state, &grippers, &objective);
+    }
+    let mut group = c.benchmark_group("replan_rerouting");
+    group.sample_size(10);
+    for model in &models {
+        let mut mppi = Mppi::new(TaskKind::Reroute.mppi(), 1).expect("planner");
+        group.bench_function(model.name(), |b| {
+            b.iter(|| {
+                black_box(
+                    mppi.plan(model.as_ref(), &state, &grippers, &objective)
+                        .expect("plan"),
+                )
+            })
+        });
+    }
+    group.finish();
+}
+
+/// Process CPU time (user + system, all threads), s, or `None` off Linux.
+fn process_cpu_s() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    // Fields after the parenthesised command name; utime and stime are fields 14 and 15.
+    let rest = &stat[stat.rfind(')')? + 2..];
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    let ticks: f64 = f.get(11)?.parse::<f64>().ok()? + f.get(12)?.parse::<f64>().ok()?;
+    // USER_HZ is 100 on every mainstream Linux configuration.
+    Some(ticks / 100.0)
+}
+
+fn cpu_time_per_replan(
+    model: &dyn ForwardModel,
+    state: &ModelState,
+    grippers: &[glam::Vec3],
+    objective: &plan::Objective,
+) {
+    let mut mppi = Mppi::new(TaskKind::Reroute.mppi(), 1).expect("planner");
+    let reps = 3;
+    let (Some(c0), t0) = (process_cpu_s(), std::time::Instant::now()) else {
+        return;
+    };
+    for _ in 0..reps {
+        black_box(mppi.plan(model, state, grippers, objective).expect("plan"));
+    }
+    let wall = t0.elapsed().as_secs_f64() / reps as f64;
+    if let Some(c1) = process_cpu_s() {
+        println!(
+            "replan_rerouting/{}: {:.3} s CPU time (all threads) and {:.3} s wall per replanning step, mean of {reps}",
+            model.name(),
+            (c1 - c0) / reps as f64,
+            wall
+        );
+    }
+}
+
+criterion_group!(benches, replan);
+criterion_main!(benches);

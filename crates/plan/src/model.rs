@@ -1,0 +1,197 @@
+//! Forward models the planner can roll out: the spring-mass backbone alone, or backbone plus
+//! the residual network (PGRD), behind one trait.
+
+use std::sync::Arc;
+
+use glam::Vec3;
+use springs::{Actions, Backbone, State};
+
+use crate::{PlanError, Result};
+
+/// What a forward model starts from: the current positions and velocities of its particles and
+/// the two frames before (models with memory, like the residual network, read them).
+#[derive(Clone, Debug, PartialEq)]
+pub struct ModelState {
+    /// Positions now, m.
+    pub x: Vec<Vec3>,
+    /// Velocities now, m/s.
+    pub v: Vec<Vec3>,
+    /// Positions one and two steps ago, m.
+    pub past_x: [Vec<Vec3>; 2],
+    /// Velocities one and two steps ago, m/s.
+    pub past_v: [Vec<Vec3>; 2],
+}
+
+impl ModelState {
+    /// Particles at `x`, at rest now and before.
+    pub fn at_rest(x: Vec<Vec3>) -> Self {
+        let v = vec![Vec3::ZERO; x.len()];
+        ModelState {
+            past_x: [x.clone(), x.clone()],
+            past_v: [v.clone(), v.clone()],
+            x,
+            v,
+        }
+    }
+
+    /// The state after observing `frames` (oldest first, the last one is now), one every `dt`
+    /// seconds: velocities by backward differences; frames before the first repeat it (at rest).
+    ///
+    /// ```
+    /// use glam::Vec3;
+    /// let frames = vec![vec![Vec3::ZERO], vec![Vec3::new(0.1, 0.0, 0.0)]];
+    /// let s = plan::ModelState::from_frames(&frames, 0.1)?;
+    /// assert!((s.v[0].x - 1.0).abs() < 1e-6);
+    /// assert_eq!(s.past_x[1][0], Vec3::ZERO); // before the first frame: held at rest
+    /// # Ok::<(), plan::PlanError>(())
+    /// ```
+    pub fn from_frames(frames: &[Vec<Vec3>], dt: f32) -> Result<Self> {
+        let Some(now) = frames.last() else {
+            return Err(PlanError::Mismatch {
+                what: "observed frames",
+                expected: 1,
+                got: 0,
+            });
+        };
+        if !(dt.is_finite() && dt > 0.0) {
+            return Err(PlanError::Config {
+                name: "dt",
+                value: f64::from(dt),
+                reason: "must be finite and > 0",
+            });
+        }
+        let n = now.len();
+        if let Some(f) = frames.iter().find(|f| f.len() != n) {
+            return Err(PlanError::Mismatch {
+                what: "particles per observed frame",
+                expected: n,
+                got: f.len(),
+            });
+        }
+        if frames.iter().flatten().any(|p| !p.is_finite()) {
+            return Err(PlanError::NonFinite("an observed frame"));
+        }
+        // frame(k): k steps ago, clamped to the oldest frame.
+        let frame = |k: usize| &frames[frames.len() - 1 - k.min(frames.len() - 1)];
+        let vel = |k: usize| -> Vec<Vec3> {
+            frame(k)
+                .iter()
+                .zip(frame(k + 1))
+                .map(|(a, b)| (*a - *b) / dt)
+                .collect()
+        };
+        Ok(ModelState {
+            x: now.clone(),
+            v: vel(0),
+            past_x: [frame(1).clone(), frame(2).clone()],
+            past_v: [vel(1), vel(2)],
+        })
+    }
+
+    /// Number of particles.
+    pub fn len(&self) -> usize {
+        self.x.len()
+    }
+
+    /// Whether there are no particles.
+    pub fn is_empty(&self) -> bool {
+        self.x.is_empty()
+    }
+}
+
+/// A model that predicts how particles move under gripper commands.
+///
+/// `rollout` returns the positions of all particles after each step (`actions.num_frames() − 1`
+/// entries; frame 0 of `actions` is where the grippers are now). It must be deterministic and
+/// safe to call from several threads at once: the planner evaluates candidates in parallel.
+/// An `Err` drops that candidate without stopping the planner.
+pub trait ForwardModel: Sync {
+    /// Particles the model simulates (the length of every predicted frame).
+    fn num_particles(&self) -> usize;
+    /// Positions after each step of `actions`, m.
+    fn rollout(&self, state: &ModelState, actions: &Actions) -> Result<Vec<Vec<Vec3>>>;
+    /// A short name for reports ("spring-mass", "pgrd").
+    fn name(&self) -> &str;
+}
+
+/// The spring-mass backbone alone.
+#[derive(Debug)]
+pub struct SpringMass {
+    backbone: Backbone,
+}
+
+impl SpringMass {
+    /// Wraps a backbone (its springs, held particles, obstacles and step length are used as is).
+    pub fn new(backbone: Backbone) -> Self {
+        SpringMass { backbone }
+    }
+
+    /// The backbone.
+    pub fn backbone(&self) -> &Backbone {
+        &self.backbone
+    }
+}
+
+impl ForwardModel for SpringMass {
+    fn num_particles(&self) -> usize {
+        self.backbone.num_particles()
+    }
+
+    fn rollout(&self, state: &ModelState, actions: &Actions) -> Result<Vec<Vec<Vec3>>> {
+        let init = State {
+            x: state.x.clone(),
+            v: state.v.clone(),
+        };
+        let mut out = self.backbone.rollout(&init, actions)?;
+        out.positions.remove(0);
+        Ok(out.positions)
+    }
+
+    fn name(&self) -> &str {
+        "spring-mass"
+    }
+}
+
+/// PGRD: the backbone with the residual network's velocity corrections after every step.
+#[derive(Debug)]
+pub struct Pgrd {
+    backbone: Backbone,
+    net: Arc<residual::ResidualNet>,
+}
+
+impl Pgrd {
+    /// The hybrid model of `backbone` and `net` (trained on the same kind of particles); one
+    /// network may be shared by many models.
+    pub fn new(backbone: Backbone, net: Arc<residual::ResidualNet>) -> Self {
+        Pgrd { backbone, net }
+    }
+
+    /// The backbone.
+    pub fn backbone(&self) -> &Backbone {
+        &self.backbone
+    }
+}
+
+impl ForwardModel for Pgrd {
+    fn num_particles(&self) -> usize {
+        self.backbone.num_particles()
+    }
+
+    fn rollout(&self, state: &ModelState, actions: &Actions) -> Result<Vec<Vec<Vec3>>> {
+        let init = State {
+            x: state.x.clone(),
+            v: state.v.clone(),
+        };
+        let history = residual::History {
+            x: state.past_x.clone(),
+            v: state.past_v.clone(),
+        };
+        let steps = actions.num_frames().saturating_sub(1);
+        residual::predict(&self.net, &self.backbone, &init, &history, actions, steps)
+            .map_err(|e| PlanError::Model(e.to_string()))
+    }
+
+    fn name(&self) -> &str {
+        "pgrd"
+    }
+}

@@ -1,0 +1,80 @@
+//! The planning tasks on the reference world's rope, and one closed-loop run against it.
+
+use glam::Vec3;
+use plan::{LoopSettings, Mppi, Slot, SpringMass, Task, TaskConfig, TaskKind, run_closed_loop};
+
+/// A coarse rope observed through 60 points keeps these tests quick.
+fn config(trial: u64) -> TaskConfig {
+    TaskConfig {
+        trial,
+        tracked: 60,
+        ..TaskConfig::new()
+    }
+}
+
+#[test]
+fn every_task_builds_with_a_target_away_from_its_start() {
+    for kind in TaskKind::ALL {
+        let task = Task::build(kind, &config(0)).unwrap();
+        let start = task.start.observe();
+        let o = task.objective().unwrap();
+        let d = o.chamfer(&start).unwrap();
+        assert!(d > 0.05, "{kind}: start only {d} m from the target");
+        assert!(o.chamfer(&task.target).unwrap() < 1e-9);
+        assert!(
+            !task.success(&start, task.start.gripper()).unwrap(),
+            "{kind}"
+        );
+        assert!(
+            task.success(&task.target, task.target_gripper).unwrap(),
+            "{kind}"
+        );
+        assert_eq!(kind.name().parse::<TaskKind>().unwrap(), kind);
+    }
+    assert!("rope-jump".parse::<TaskKind>().is_err());
+}
+
+#[test]
+fn rerouting_trials_differ_and_the_slot_test_is_geometric() {
+    let a = Task::build(TaskKind::Reroute, &config(0)).unwrap();
+    let b = Task::build(TaskKind::Reroute, &config(1)).unwrap();
+    assert_ne!(a.start.observe(), b.start.observe());
+    assert_ne!(a.target, b.target);
+    let s = Slot::REROUTE;
+    let through = vec![Vec3::new(0.0, s.far_y() + 0.01, 0.01); 3];
+    assert!(s.passed(&through, Vec3::new(0.0, 1.0, 0.05)));
+    // The gripper above the slot's top, or one point still in the slot: not passed.
+    assert!(!s.passed(&through, Vec3::new(0.0, 1.0, s.height + 0.01)));
+    let mut stuck = through.clone();
+    stuck[1].y = s.near_y + 0.01;
+    assert!(!s.passed(&stuck, Vec3::new(0.0, 1.0, 0.05)));
+    // Both blocks leave exactly the slot's width between them.
+    let [l, r] = s.boxes().unwrap();
+    assert!((r.min.x - l.max.x - s.width).abs() < 1e-6);
+}
+
+#[test]
+fn spring_mass_mppi_lifts_the_world_rope() {
+    let task = Task::build(TaskKind::RopeLift, &config(0)).unwrap();
+    let model = SpringMass::new(
+        task.backbone(springs::SpringParams::reference_rope())
+            .unwrap(),
+    );
+    let mut mppi = Mppi::new(TaskKind::RopeLift.mppi(), 1).unwrap();
+    let mut world = task.start.clone();
+    let objective = task.objective().unwrap();
+    let settings = LoopSettings {
+        max_steps: 25,
+        dt: 0.1,
+    };
+    let done = |x: &[Vec3], g: &[Vec3]| task.success(x, g[0]).unwrap();
+    let traj = run_closed_loop(&model, &mut world, &mut mppi, &objective, settings, &done).unwrap();
+    assert!(
+        traj.done,
+        "not lifted in 25 steps; Chamfer went {:?}",
+        traj.chamfer_m
+    );
+    assert!(*traj.chamfer_m.last().unwrap() < task.success_chamfer_m);
+    assert_eq!(traj.observed.len(), traj.grippers.len());
+    assert_eq!(traj.replans.len() + 1, traj.observed.len());
+}

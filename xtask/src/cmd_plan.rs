@@ -1,0 +1,402 @@
+//! `cargo xtask plan`: MPPI with a run's model, executed in closed loop in the reference world.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::Context;
+use glam::Vec3;
+use plan::render::{Frame, render, view_bounds};
+use plan::{
+    ForwardModel, LoopSettings, Mppi, Pgrd, SpringMass, Task, TaskConfig, TaskKind, Trajectory,
+    run_closed_loop,
+};
+use serde::Serialize;
+
+use crate::common::{read_backbone, read_residual};
+use crate::report::{Curve, plot_curves, write_json};
+
+/// `--model`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ModelArg {
+    /// The fitted spring-mass backbone alone.
+    SpringMass,
+    /// Backbone plus the run's residual network.
+    Pgrd,
+}
+
+/// `--resolution` of the world's rope.
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+pub enum ResolutionArg {
+    /// Coarse (the fixtures' resolution).
+    Coarse,
+    /// Full.
+    Full,
+}
+
+/// Arguments of `plan`.
+#[derive(clap::Args)]
+pub struct PlanArgs {
+    /// Task: rope-lift, rope-lower, rope-rotate, rope-curve or reroute.
+    #[arg(long)]
+    pub task: String,
+    /// Run directory: backbone.json (fitted parameters) and, for pgrd, residual.safetensors.
+    #[arg(long)]
+    pub run: PathBuf,
+    /// Models to plan with (comma-separated; default: spring-mass, plus pgrd when the run has a
+    /// residual network).
+    #[arg(long, value_enum, value_delimiter = ',')]
+    pub model: Vec<ModelArg>,
+    /// Trials per model (rerouting draws a new start and target per trial; the simple tasks
+    /// repeat theirs with another planner seed).
+    #[arg(long, default_value_t = 10)]
+    pub trials: usize,
+    /// Write the report here.
+    #[arg(long)]
+    pub json: PathBuf,
+    /// Chamfer-curve plot (default: the JSON path with `.svg`).
+    #[arg(long)]
+    pub plot: Option<PathBuf>,
+    /// GIF of the first trial (default: the JSON path with `_<model>.gif`, one per model).
+    #[arg(long)]
+    pub gif: Option<PathBuf>,
+    /// Planner seed of the first trial (trial k uses seed + k).
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Tracked rope points = model particles (default: the particle count of the run's
+    /// dataset, else 150).
+    #[arg(long)]
+    pub tracked: Option<usize>,
+    /// The world rope's resolution.
+    #[arg(long, value_enum, default_value_t = ResolutionArg::Coarse)]
+    pub resolution: ResolutionArg,
+    /// Override the task's step limit.
+    #[arg(long)]
+    pub max_steps: Option<usize>,
+    /// Earlier reports of the same task whose models' curves join the plot (e.g. a slow model
+    /// run separately).
+    #[arg(long)]
+    pub compare: Vec<PathBuf>,
+}
+
+/// One trial in the report.
+#[derive(Serialize)]
+struct TrialReport {
+    trial: usize,
+    seed: u64,
+    success: bool,
+    steps: usize,
+    final_chamfer_cm: f64,
+    chamfer_curve_cm: Vec<f64>,
+    stopped: Option<String>,
+    failed_rollouts: usize,
+    replan_wall_s_mean: f64,
+    replan_wall_s_max: f64,
+}
+
+/// One model's results.
+#[derive(Serialize)]
+struct ModelReport {
+    model: ModelArg,
+    successes: usize,
+    trials: Vec<TrialReport>,
+    /// Mean over trials of the Chamfer distance after each executed step; a trial that ended
+    /// early (done) holds its last value.
+    mean_curve_cm: Vec<f64>,
+    final_chamfer_cm_mean: f64,
+    wall_s: f64,
+}
+
+/// Runs `plan`.
+pub fn run(args: &PlanArgs) -> anyhow::Result<()> {
+    let kind: TaskKind = args.task.parse()?;
+    let backbone = read_backbone(&args.run)?;
+    let net = read_residual(&args.run)?.map(std::sync::Arc::new);
+    let models = if args.model.is_empty() {
+        let mut m = vec![ModelArg::SpringMass];
+        if net.is_some() {
+            m.push(ModelArg::Pgrd);
+        }
+        m
+    } else {
+        args.model.clone()
+    };
+    if models.contains(&ModelArg::Pgrd) && net.is_none() {
+        anyhow::bail!(
+            "--model pgrd needs {} (run `cargo xtask train` first)",
+            args.run.join("residual.safetensors").display()
+        );
+    }
+    let tracked = match args.tracked {
+        Some(n) => n,
+        None => dataset_particles(&backbone.dataset).unwrap_or(150),
+    };
+    let mut cfg = TaskConfig {
+        tracked,
+        resolution: match args.resolution {
+            ResolutionArg::Coarse => world::Resolution::Coarse,
+            ResolutionArg::Full => world::Resolution::Full,
+        },
+        ..TaskConfig::new()
+    };
+    let tasks: Vec<Task> = (0..args.trials)
+        .map(|t| {
+            cfg.trial = if kind == TaskKind::Reroute {
+                t as u64
+            } else {
+                0
+            };
+            Task::build(kind, &cfg).with_context(|| format!("building {kind} trial {t}"))
+        })
+        .collect::<anyhow::Result<_>>()?;
+    let mut reports = Vec::new();
+    for &m in &models {
+        let t0 = Instant::now();
+        let mut trials = Vec::new();
+        let mut trajectories = Vec::new();
+        for (t, task) in tasks.iter().enumerate() {
+            let bb = task.backbone(backbone.params)?;
+            let model: Box<dyn ForwardModel> = match (m, &net) {
+                (ModelArg::Pgrd, Some(net)) => Box::new(Pgrd::new(bb, net.clone())),
+                _ => Box::new(SpringMass::new(bb)),
+            };
+            let seed = args.seed + t as u64;
+            let (mut report, traj) = run_trial(model.as_ref(), task, seed, args.max_steps)?;
+            report.trial = t;
+            eprintln!(
+                "{kind} {} trial {t}: {} in {} steps, final Chamfer {:.2} cm, {:.2} s per replan",
+                model.name(),
+                if report.success { "success" } else { "failure" },
+                report.steps,
+                report.final_chamfer_cm,
+                report.replan_wall_s_mean
+            );
+            trials.push(report);
+            trajectories.push(traj);
+        }
+        let steps = trials
+            .iter()
+            .map(|t| t.chamfer_curve_cm.len())
+            .max()
+            .unwrap_or(0);
+        let mean_curve_cm = (0..steps)
+            .map(|k| {
+                trials
+                    .iter()
+                    .map(|t| t.chamfer_curve_cm[k.min(t.chamfer_curve_cm.len() - 1)])
+                    .sum::<f64>()
+                    / trials.len() as f64
+            })
+            .collect();
+        let gif = match &args.gif {
+            Some(p) if models.len() == 1 => p.clone(),
+            Some(p) => with_suffix(p, &format!("_{}", model_name(m)), "gif"),
+            None => with_suffix(&args.json, &format!("_{}", model_name(m)), "gif"),
+        };
+        if let (Some(task), Some(traj)) = (tasks.first(), trajectories.first()) {
+            write_gif(&gif, task, traj)?;
+        }
+        reports.push(ModelReport {
+            model: m,
+            successes: trials.iter().filter(|t| t.success).count(),
+            final_chamfer_cm_mean: trials.iter().map(|t| t.final_chamfer_cm).sum::<f64>()
+                / trials.len().max(1) as f64,
+            mean_curve_cm,
+            trials,
+            wall_s: t0.elapsed().as_secs_f64(),
+        });
+    }
+    let plot = args
+        .plot
+        .clone()
+        .unwrap_or_else(|| args.json.with_extension("svg"));
+    let mut labelled: Vec<(String, Vec<f64>)> = reports
+        .iter()
+        .map(|r| {
+            let label = format!(
+                "{} ({}/{} succeeded)",
+                model_name(r.model),
+                r.successes,
+                r.trials.len()
+            );
+            (label, r.mean_curve_cm.clone())
+        })
+        .collect();
+    for path in &args.compare {
+        labelled.extend(compared_curves(path, kind)?);
+    }
+    let curves: Vec<Curve<'_>> = labelled
+        .iter()
+        .map(|(label, y)| Curve {
+            label: label.clone(),
+            y,
+        })
+        .collect();
+    plot_curves(
+        &plot,
+        &format!(
+            "{kind}: Chamfer distance to the target, mean of {} trials",
+            args.trials
+        ),
+        "planning step",
+        "Chamfer distance (cm)",
+        0.0,
+        &curves,
+    )?;
+    let task0 = &tasks[0];
+    let mppi = kind.mppi();
+    write_json(
+        &args.json,
+        &serde_json::json!({
+            "task": kind.name(),
+            "run": args.run.display().to_string(),
+            "params": backbone.params,
+            "tracked": tracked,
+            "trials": args.trials,
+            "max_steps": args.max_steps.unwrap_or(task0.max_steps),
+            "stop_at_success": task0.stop_at_success,
+            "mppi": mppi,
+            "model_steps_per_replan": mppi.model_steps_per_replan(),
+            "success_test": match kind {
+                TaskKind::Reroute => "every observed rope point beyond the slot's far face and the gripper below the slot's top".to_string(),
+                _ => format!("Chamfer distance to the target below {} cm", task0.success_chamfer_m * 100.0),
+            },
+            "slot": task0.slot,
+            "workspace": task0.workspace,
+            "chamfer": "two-sided sum of means (PGND convention), cm",
+            "models": reports,
+        }),
+    )?;
+    for r in &reports {
+        println!(
+            "{kind} {}: {}/{} succeeded, final Chamfer {:.2} cm (mean)",
+            model_name(r.model),
+            r.successes,
+            r.trials.len(),
+            r.final_chamfer_cm_mean
+        );
+    }
+    Ok(())
+}
+
+fn model_name(m: ModelArg) -> &'static str {
+    match m {
+        ModelArg::SpringMass => "spring-mass",
+        ModelArg::Pgrd => "pgrd",
+    }
+}
+
+/// Runs one closed-loop trial and summarises it.
+fn run_trial(
+    model: &dyn ForwardModel,
+    task: &Task,
+    seed: u64,
+    max_steps: Option<usize>,
+) -> anyhow::Result<(TrialReport, Trajectory)> {
+    let mut cfg = task.kind.mppi();
+    cfg.seed = seed;
+    let mut mppi = Mppi::new(cfg, 1)?;
+    let objective = task.objective()?;
+    let mut world = task.start.clone();
+    let settings = LoopSettings {
+        max_steps: max_steps.unwrap_or(task.max_steps),
+        dt: 0.1,
+    };
+    let done =
+        |x: &[Vec3], g: &[Vec3]| task.stop_at_success && task.success(x, g[0]).unwrap_or(false);
+    let traj = run_closed_loop(model, &mut world, &mut mppi, &objective, settings, &done)?;
+    let last = traj.observed.last().context("empty trajectory")?;
+    let grip = traj.grippers.last().context("empty trajectory")?[0];
+    let walls: Vec<f64> = traj.replans.iter().map(|r| r.wall_s).collect();
+    let report = TrialReport {
+        trial: 0,
+        seed,
+        success: task.success(last, grip)?,
+        steps: traj.replans.len(),
+        final_chamfer_cm: traj.chamfer_m.last().copied().unwrap_or(f64::NAN) * 100.0,
+        chamfer_curve_cm: traj.chamfer_m.iter().map(|c| c * 100.0).collect(),
+        stopped: traj.stopped.clone(),
+        failed_rollouts: traj.replans.iter().map(|r| r.failed).sum(),
+        replan_wall_s_mean: walls.iter().sum::<f64>() / walls.len().max(1) as f64,
+        replan_wall_s_max: walls.iter().copied().fold(0.0, f64::max),
+    };
+    Ok((report, traj))
+}
+
+/// The labelled mean curves of another `plan` report of the same task.
+fn compared_curves(path: &Path, kind: TaskKind) -> anyhow::Result<Vec<(String, Vec<f64>)>> {
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let v: serde_json::Value =
+        serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))?;
+    anyhow::ensure!(
+        v["task"] == kind.name(),
+        "{} is a report of task {}, not {kind}",
+        path.display(),
+        v["task"]
+    );
+    let models = v["models"]
+        .as_array()
+        .with_context(|| format!("{}: no models", path.display()))?;
+    models
+        .iter()
+        .map(|m| {
+            let curve: Vec<f64> = serde_json::from_value(m["mean_curve_cm"].clone())
+                .with_context(|| format!("{}: mean_curve_cm", path.display()))?;
+            let trials = m["trials"].as_array().map_or(0, Vec::len);
+            let label = format!(
+                "{} ({}/{trials} succeeded)",
+                m["model"].as_str().unwrap_or("?"),
+                m["successes"]
+            );
+            Ok((label, curve))
+        })
+        .collect()
+}
+
+/// Particles per frame of the run's dataset, when it can be opened.
+fn dataset_particles(dir: &str) -> Option<usize> {
+    let data = dataset::Dataset::open(dir).ok()?;
+    Some(data.load_episode(0).ok()?.particles())
+}
+
+/// `path` with `suffix` appended to its stem and extension `ext`.
+fn with_suffix(path: &Path, suffix: &str, ext: &str) -> PathBuf {
+    let stem = path
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    path.with_file_name(format!("{stem}{suffix}.{ext}"))
+}
+
+/// Writes an animated GIF of a trajectory (top, side and front views; the target in blue).
+fn write_gif(path: &Path, task: &Task, traj: &Trajectory) -> anyhow::Result<()> {
+    let obstacles = task.obstacles()?;
+    let frames: Vec<Frame<'_>> = traj
+        .observed
+        .iter()
+        .zip(&traj.grippers)
+        .map(|(x, g)| Frame {
+            points: x,
+            target: &task.target,
+            grippers: g,
+            obstacles: &obstacles,
+        })
+        .collect();
+    let bounds = view_bounds(&frames);
+    let mut bytes = Vec::new();
+    {
+        let first = render(&frames[0], bounds);
+        let (w, h) = (u16::try_from(first.width)?, u16::try_from(first.height)?);
+        let mut enc = gif::Encoder::new(&mut bytes, w, h, &[])?;
+        enc.set_repeat(gif::Repeat::Infinite)?;
+        for (i, f) in frames.iter().enumerate() {
+            let img = render(f, bounds);
+            let mut frame = gif::Frame::from_rgb_speed(w, h, &img.rgb, 10);
+            // 0.1 s per step, the last frame held for a second.
+            frame.delay = if i + 1 == frames.len() { 100 } else { 10 };
+            enc.write_frame(&frame)?;
+        }
+    }
+    dataset::write_atomic(path, &bytes).with_context(|| format!("writing {}", path.display()))
+}
