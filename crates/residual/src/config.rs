@@ -81,6 +81,22 @@ pub struct ModelConfig {
     pub residual: ResidualKind,
     /// Factor applied to velocities before they enter the network (2 in the reference).
     pub velocity_scale: f32,
+    /// How history and backbone positions enter the network. Configurations saved before this
+    /// field existed used centred absolute positions and load as [`InputConvention::Absolute`],
+    /// which this version refuses (its weights would be fed the wrong inputs).
+    #[serde(default)]
+    pub inputs: InputConvention,
+}
+
+/// How the earlier and predicted positions are presented to the network.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum InputConvention {
+    /// Centred absolute positions (the first version's; no longer supported).
+    #[default]
+    Absolute,
+    /// Displacements from the current position expressed as velocities (`docs/residual.md`).
+    Displacement,
 }
 
 impl Default for ModelConfig {
@@ -106,6 +122,7 @@ impl Default for ModelConfig {
             residual_scale: 0.1,
             residual: ResidualKind::Velocity,
             velocity_scale: 2.0,
+            inputs: InputConvention::Displacement,
         }
     }
 }
@@ -135,6 +152,12 @@ impl ModelConfig {
     /// Checks every size and range.
     pub fn validate(&self) -> Result<()> {
         let bad = |m: &str| Err(ResidualError::Config(m.to_string()));
+        if self.inputs != InputConvention::Displacement {
+            return bad(
+                "network trained with the old absolute-position inputs; retrain it with this \
+                 version (cargo xtask train --restart)",
+            );
+        }
         let stages = self.enc_channels.len();
         if stages == 0 || self.enc_depths.len() != stages {
             return bad("enc_channels and enc_depths need the same, non-zero length");

@@ -38,7 +38,7 @@ mod serialize;
 mod train;
 
 pub use augment::{rotate_history, rotate_scene};
-pub use config::{Combine, EncoderKind, ModelConfig, ResidualKind};
+pub use config::{Combine, EncoderKind, InputConvention, ModelConfig, ResidualKind};
 pub use error::{ResidualError, Result};
 pub use model::{INPUTS, ResidualNet};
 pub use rollout::{History, HybridRollout, RolloutOptions, hybrid_rollout, predict};

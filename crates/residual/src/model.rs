@@ -230,7 +230,10 @@ impl ResidualNet {
                 path: json.display().to_string(),
                 source,
             })?;
-        let mut net = ResidualNet::new(&cfg, 0)?;
+        let mut net = ResidualNet::new(&cfg, 0).map_err(|e| match e {
+            ResidualError::Config(m) => ResidualError::Config(format!("{}: {m}", json.display())),
+            e => e,
+        })?;
         net.varmap.load(path)?;
         Ok(net)
     }

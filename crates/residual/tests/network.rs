@@ -146,6 +146,18 @@ fn checkpoint_reloads_to_identical_predictions() {
     let other = ResidualNet::new(&ModelConfig::tiny(), 6).unwrap();
     let c = hybrid_rollout(&other, &bb, &scene, &history, opts).unwrap();
     assert_ne!(a.positions, c.positions);
+    // A configuration from before the input convention was recorded (absolute positions) is
+    // refused with a message naming the file, not run with the wrong inputs.
+    let json = path.with_extension("json");
+    let mut cfg: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    cfg.as_object_mut().unwrap().remove("inputs");
+    std::fs::write(&json, cfg.to_string()).unwrap();
+    let err = ResidualNet::load(&path).unwrap_err().to_string();
+    assert!(
+        err.contains("residual.json") && err.contains("retrain"),
+        "{err}"
+    );
     std::fs::remove_dir_all(dir).ok();
 }
 
