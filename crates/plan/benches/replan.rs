@@ -1,6 +1,7 @@
 //! One MPPI replanning step at the paper's cable-rerouting settings (15 samples, horizon 15,
 //! 6 iterations: 1350 model steps) on the rerouting task's rope (150 observed points), with the
-//! spring-mass backbone and, when `PGRD_RESIDUAL` names a `residual.safetensors`, with PGRD.
+//! spring-mass backbone and with PGRD: the network `PGRD_RESIDUAL` names (a
+//! `residual.safetensors`), or an untrained one of the default architecture (same cost).
 //! Run with `RAYON_NUM_THREADS=2` to match the 2-core budget of `docs/plan.md`. Besides the
 //! wall time, it prints the process CPU time per replanning step (all threads, from
 //! `/proc/self/stat` on Linux), which other jobs on a shared machine do not inflate.
@@ -21,13 +22,16 @@ fn replan(c: &mut Criterion) {
     let mut models: Vec<Box<dyn ForwardModel>> = vec![Box::new(SpringMass::new(
         task.backbone(params).expect("backbone"),
     ))];
-    if let Ok(path) = std::env::var("PGRD_RESIDUAL") {
-        let net = residual::ResidualNet::load(std::path::Path::new(&path)).expect("residual");
-        models.push(Box::new(Pgrd::new(
-            task.backbone(params).expect("backbone"),
-            Arc::new(net),
-        )));
-    }
+    // A trained network when `PGRD_RESIDUAL` names one; otherwise an untrained network of the
+    // default architecture, which costs the same per step.
+    let net = match std::env::var("PGRD_RESIDUAL") {
+        Ok(path) => residual::ResidualNet::load(std::path::Path::new(&path)).expect("residual"),
+        Err(_) => residual::ResidualNet::new(&residual::ModelConfig::default(), 0).expect("net"),
+    };
+    models.push(Box::new(Pgrd::new(
+        task.backbone(params).expect("backbone"),
+        Arc::new(net),
+    )));
     for model in &models {
         cpu_time_per_replan(model.as_ref(), &state, &grippers, &objective);
     }
