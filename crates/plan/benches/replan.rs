@@ -14,7 +14,16 @@ use criterion::{Criterion, criterion_group, criterion_main};
 use plan::{ForwardModel, ModelState, Mppi, Pgrd, SpringMass, Task, TaskConfig, TaskKind};
 
 fn replan(c: &mut Criterion) {
-    let task = Task::build(TaskKind::Reroute, &TaskConfig::new()).expect("rerouting task");
+    // `PLAN_BENCH_TRACKED` changes the number of observed points (= model particles).
+    let tracked = std::env::var("PLAN_BENCH_TRACKED")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(150);
+    let cfg = TaskConfig {
+        tracked,
+        ..TaskConfig::new()
+    };
+    let task = Task::build(TaskKind::Reroute, &cfg).expect("rerouting task");
     let params = springs::SpringParams::reference_rope();
     let objective = task.objective().expect("objective");
     let state = ModelState::at_rest(task.start.observe());
