@@ -110,6 +110,17 @@ pub(crate) struct Trajectory {
     v: Vec<Vec<Vec3>>,
 }
 
+impl Trajectory {
+    /// The history frames and the start state of `ep`'s evaluation window.
+    fn start(ep: &TrainEpisode) -> Self {
+        let (h, init) = (&ep.history, &ep.base.init);
+        Trajectory {
+            x: vec![h.x[1].clone(), h.x[0].clone(), init.x.clone()],
+            v: vec![h.v[1].clone(), h.v[0].clone(), init.v.clone()],
+        }
+    }
+}
+
 /// The training episodes of a dataset with the fitted backbone.
 pub struct TrainSet {
     episodes: Vec<TrainEpisode>,
@@ -220,12 +231,10 @@ impl TrainSet {
                         (x, v)
                     }
                 };
-                let h = &ep.history;
-                let mut x = vec![h.x[1].clone(), h.x[0].clone(), ep.base.init.x.clone()];
-                let mut v = vec![h.v[1].clone(), h.v[0].clone(), ep.base.init.v.clone()];
-                x.extend(px);
-                v.extend(pv);
-                Ok(Trajectory { x, v })
+                let mut traj = Trajectory::start(ep);
+                traj.x.extend(px);
+                traj.v.extend(pv);
+                Ok(traj)
             })
             .collect()
     }
@@ -239,9 +248,7 @@ impl TrainSet {
             .iter()
             .map(|ep| {
                 let base = &ep.base;
-                let h = &ep.history;
-                let mut x = vec![h.x[1].clone(), h.x[0].clone(), base.init.x.clone()];
-                let mut v = vec![h.v[1].clone(), h.v[0].clone(), base.init.v.clone()];
+                let Trajectory { mut x, mut v } = Trajectory::start(ep);
                 let mut state = base.init.clone();
                 let mut scratch = ep.backbone.scratch();
                 for step in 0..base.window.steps {
