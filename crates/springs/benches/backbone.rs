@@ -9,7 +9,7 @@ use std::time::{Duration, Instant};
 use criterion::{Criterion, criterion_group, criterion_main};
 use glam::Vec3;
 use springs::{
-    ActionFrame, Actions, Backbone, RolloutJob, SimConfig, SpringParams, State, Substep,
+    ActionFrame, Actions, Backbone, Dashpot, RolloutJob, SimConfig, SpringParams, State, Substep,
     rollout_batch,
 };
 
@@ -109,6 +109,51 @@ fn bench(c: &mut Criterion) {
             })
         })
     });
+    let (auto_ex, _) = lattice_backbone(SimConfig {
+        dashpot: Dashpot::Explicit,
+        ..SimConfig::default()
+    });
+    eprintln!(
+        "lattice, explicit dashpot: auto substep {:.3e} s ({} per 0.1 s)",
+        auto_ex.substep_dt(),
+        auto_ex.substeps()
+    );
+    // The reference's scheme (explicit dashpot, the same single pass over the springs that
+    // Warp's CPU backend runs per substep) at the reference's 2e-5 s substep.
+    let (bb_ex, _) = lattice_backbone(SimConfig {
+        step_dt: 10.0 * 2e-5,
+        substep: Substep::Fixed { dt: 2e-5 },
+        dashpot: Dashpot::Explicit,
+        ..SimConfig::default()
+    });
+    c.bench_function(
+        "lattice_1000p_10.5k_springs/substep_explicit_dashpot",
+        |b| {
+            let mut sc = bb_ex.scratch();
+            let mut st = state0.clone();
+            b.iter_custom(|iters| {
+                let t0 = Instant::now();
+                for _ in 0..iters {
+                    bb_ex.step(&mut st, none, none, &mut sc).expect("step");
+                }
+                t0.elapsed() / 10
+            })
+        },
+    );
+    c.bench_function(
+        "lattice_1000p_10.5k_springs/substep_explicit_dashpot_cpu_time",
+        |b| {
+            let mut sc = bb_ex.scratch();
+            let mut st = state0.clone();
+            b.iter_custom(|iters| {
+                cpu_iters(iters, 100, || {
+                    for _ in 0..10 {
+                        bb_ex.step(&mut st, none, none, &mut sc).expect("step");
+                    }
+                })
+            })
+        },
+    );
     c.bench_function("lattice_1000p_10.5k_springs/step_0.1s_auto", |b| {
         let mut sc = auto_bb.scratch();
         let mut st = state0.clone();

@@ -4,7 +4,7 @@ use glam::{Vec3, Vec3A};
 
 use crate::effects::ModelSetup;
 use crate::params::{GROUND_DAMPING, GROUND_STIFFNESS, GROUND_VISCOUS_FRICTION};
-use crate::{Effect, Manipulation, SimConfig, SimError, SpringParams, Substep, Topology};
+use crate::{Dashpot, Effect, Manipulation, SimConfig, SimError, SpringParams, Substep, Topology};
 
 /// Most substeps one model step may take.
 const MAX_SUBSTEPS: u64 = 1_000_000;
@@ -33,7 +33,8 @@ pub struct Backbone {
     pub(crate) rest_lengths: Vec<f32>,
     pub(crate) stiffness: Vec<f32>,
     pub(crate) damping: Vec<f32>,
-    /// Weight of each spring's implicit dashpot impulse per sweep, kg (depends on the substep).
+    /// Weight of each spring's implicit dashpot impulse per sweep, kg (depends on the substep;
+    /// empty with [`Dashpot::Explicit`]).
     pub(crate) damp_weight: Vec<f32>,
     pub(crate) masses: Vec<f32>,
     pub(crate) inv_mass: Vec<f32>,
@@ -45,7 +46,10 @@ pub struct Backbone {
     pub(crate) stable_dt: f32,
     pub(crate) substeps: u32,
     pub(crate) dt: f32,
+    /// Implicit dashpot sweeps are needed (some implicit damping weight > 0).
     pub(crate) has_damping: bool,
+    /// Dashpot forces go into the elastic pass ([`Dashpot::Explicit`] and some damping > 0).
+    pub(crate) explicit_damping: bool,
     pub(crate) effects: Vec<Box<dyn Effect>>,
     pub(crate) friction_effect: Option<usize>,
     pub(crate) compliant_grasp: bool,
@@ -173,6 +177,7 @@ impl Backbone {
             substeps: 1,
             dt: config.step_dt,
             has_damping: false,
+            explicit_damping: false,
             effects,
             friction_effect,
             compliant_grasp,
@@ -204,7 +209,8 @@ impl Backbone {
     /// stiff or explicitly damped. Per particle, Gershgorin's theorem bounds the eigenvalues of
     /// `M^-1 K` by `lambda_i = (2 sum_s k_s + k_ground + effect stiffness) / m_i`; with the
     /// explicit damping rate `gamma_i` that effects report, symplectic Euler is stable for
-    /// `dt^2 lambda + 2 dt gamma <= 4`. The implicit dashpot and ground damping get no credit.
+    /// `dt^2 lambda + 2 dt gamma <= 4`. The implicit dashpot and ground damping get no credit;
+    /// the explicit dashpot adds `2 sum_s c_s` to the damping row (Gershgorin on `M^-1 C`).
     fn stability_bound(&self) -> f32 {
         let n = self.rest_positions.len();
         let mut row = vec![0.0f32; n];
@@ -212,6 +218,12 @@ impl Backbone {
         for (&[a, b], &k) in self.springs.iter().zip(&self.stiffness) {
             row[a as usize] += 2.0 * k;
             row[b as usize] += 2.0 * k;
+        }
+        if self.config.dashpot == Dashpot::Explicit {
+            for (&[a, b], &c) in self.springs.iter().zip(&self.damping) {
+                damp[a as usize] += 2.0 * c;
+                damp[b as usize] += 2.0 * c;
+            }
         }
         if self.config.ground_z.is_some() {
             for r in &mut row {
@@ -236,18 +248,23 @@ impl Backbone {
 
     fn precompute_implicit_terms(&mut self) {
         let dt = self.dt;
-        self.damp_weight = self
-            .springs
-            .iter()
-            .zip(&self.damping)
-            .map(|(&[a, b], &c)| {
-                let mu = 1.0 / (self.inv_mass[a as usize] + self.inv_mass[b as usize]);
-                // Two sweeps each multiply an isolated pair's relative axial velocity by
-                // (1 - w / mu); choose w so that together they give the backward-Euler factor
-                // mu / (mu + c dt) of the pair's dashpot.
-                mu * (1.0 - (mu / (mu + c * dt)).sqrt())
-            })
-            .collect();
+        if self.config.dashpot == Dashpot::Explicit {
+            self.explicit_damping = self.damping.iter().any(|&c| c > 0.0);
+            self.damp_weight.clear();
+        } else {
+            self.damp_weight = self
+                .springs
+                .iter()
+                .zip(&self.damping)
+                .map(|(&[a, b], &c)| {
+                    let mu = 1.0 / (self.inv_mass[a as usize] + self.inv_mass[b as usize]);
+                    // Two sweeps each multiply an isolated pair's relative axial velocity by
+                    // (1 - w / mu); choose w so that together they give the backward-Euler
+                    // factor mu / (mu + c dt) of the pair's dashpot.
+                    mu * (1.0 - (mu / (mu + c * dt)).sqrt())
+                })
+                .collect();
+        }
         self.has_damping = self.damp_weight.iter().any(|&w| w > 0.0);
         self.ground_normal_factor = self
             .inv_mass

@@ -40,7 +40,7 @@ mod topology;
 
 pub use actions::{ActionFrame, Actions, Rollout, State};
 pub use backbone::{Backbone, BackboneOptions};
-pub use config::{Manipulation, SimConfig, Substep};
+pub use config::{Dashpot, Manipulation, SimConfig, Substep};
 pub use effects::{AirDrag, Effect, GroundContact, ModelSetup, SubstepContext};
 pub use error::SimError;
 pub use fill::fill_interior;

@@ -292,14 +292,26 @@ impl Backbone {
         for s in 0..n_sub {
             let frac0 = s as f32 / n_sub as f32;
             let frac1 = (s + 1) as f32 / n_sub as f32;
-            kernels::elastic(
-                &self.springs,
-                &self.stiffness,
-                &sc.rest,
-                &sc.x,
-                &mut sc.f,
-                &mut sc.dir,
-            );
+            if self.explicit_damping {
+                kernels::elastic_explicit_dashpot(
+                    &self.springs,
+                    &self.stiffness,
+                    &self.damping,
+                    &sc.rest,
+                    &sc.x,
+                    &sc.v,
+                    &mut sc.f,
+                );
+            } else {
+                kernels::elastic(
+                    &self.springs,
+                    &self.stiffness,
+                    &sc.rest,
+                    &sc.x,
+                    &mut sc.f,
+                    &mut sc.dir,
+                );
+            }
             if !self.effects.is_empty() {
                 lerp_grippers(&sc.g_from, &sc.g_to, frac0, &mut sc.g_now);
                 let ctx = SubstepContext {

@@ -4,7 +4,7 @@ mod common;
 
 use glam::{Mat3, Vec3};
 use proptest::prelude::*;
-use springs::{Actions, Backbone, SimConfig, SpringParams, State, Substep};
+use springs::{Actions, Backbone, Dashpot, SimConfig, SpringParams, State, Substep};
 
 /// A free object: no gravity, no ground, nothing held.
 fn free_config() -> SimConfig {
@@ -34,6 +34,14 @@ fn scene(seed: u64, n: usize, pos_noise: f32, vel_noise: f32) -> (Vec<Vec3>, Sta
     (x0, State { x, v })
 }
 
+fn dashpot(explicit: bool) -> Dashpot {
+    if explicit {
+        Dashpot::Explicit
+    } else {
+        Dashpot::Implicit
+    }
+}
+
 fn momentum(v: &[Vec3]) -> glam::DVec3 {
     v.iter().map(|p| p.as_dvec3()).sum()
 }
@@ -48,9 +56,11 @@ proptest! {
     #![proptest_config(ProptestConfig::with_cases(32))]
 
     #[test]
-    fn momentum_is_conserved(seed in any::<u64>(), n in 2usize..60, k in 10f32..5e4, c in 0f32..1000.0) {
+    fn momentum_is_conserved(seed in any::<u64>(), n in 2usize..60, k in 10f32..5e4, c in 0f32..1000.0,
+                             explicit in any::<bool>()) {
         let (x0, init) = scene(seed, n, 0.003, 0.5);
-        let bb = Backbone::new(&x0, &[], params(k, c), free_config()).unwrap();
+        let cfg = SimConfig { dashpot: dashpot(explicit), ..free_config() };
+        let bb = Backbone::new(&x0, &[], params(k, c), cfg).unwrap();
         let out = bb.rollout(&init, &Actions::without_grippers(6)).unwrap();
         let p0 = momentum(&init.v);
         let scale: f64 = init.v.iter().map(|v| f64::from(v.length())).sum::<f64>() + 1e-3;
@@ -66,9 +76,13 @@ proptest! {
     /// measured was 4e-5).
     #[test]
     fn energy_does_not_increase(seed in any::<u64>(), n in 2usize..60, k in 10f32..5e4, c in 1f32..1000.0,
-                                safety in 0.3f32..1.0) {
+                                safety in 0.3f32..1.0, explicit in any::<bool>()) {
         let (x0, init) = scene(seed, n, 0.003, 0.05);
-        let cfg = SimConfig { substep: Substep::Auto { safety, max_dt: 2e-3 }, ..free_config() };
+        let cfg = SimConfig {
+            substep: Substep::Auto { safety, max_dt: 2e-3 },
+            dashpot: dashpot(explicit),
+            ..free_config()
+        };
         let bb = Backbone::new(&x0, &[], params(k, c), cfg).unwrap();
         let out = bb.rollout(&init, &Actions::without_grippers(8)).unwrap();
         let e0 = energy(&bb, &init.x, &init.v);

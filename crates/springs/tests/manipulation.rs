@@ -4,7 +4,7 @@ mod common;
 
 use glam::Vec3;
 use springs::{
-    ActionFrame, Actions, Backbone, Manipulation, SimConfig, SpringParams, State, Substep,
+    ActionFrame, Actions, Backbone, Dashpot, Manipulation, SimConfig, SpringParams, State, Substep,
 };
 
 fn rope_with_held_end() -> (Vec<Vec3>, Vec<i32>) {
@@ -190,7 +190,7 @@ fn ground_friction_decelerates_at_mu_g() {
 
 /// Two 1 kg particles joined by one spring + dashpot: the relative coordinate is a damped
 /// oscillator `mu d'' + c d' + k d = 0` with mu = 0.5 kg, solved in closed form.
-fn two_body_error(k: f32, c: f32, substep: Substep) -> f32 {
+fn two_body_error(k: f32, c: f32, substep: Substep, dashpot: Dashpot) -> f32 {
     let rest = 0.02;
     let x0 = vec![Vec3::ZERO, Vec3::new(rest, 0.0, 0.0)];
     let params = SpringParams {
@@ -204,6 +204,7 @@ fn two_body_error(k: f32, c: f32, substep: Substep) -> f32 {
         gravity: Vec3::ZERO,
         ground_z: None,
         substep,
+        dashpot,
         ..SimConfig::default()
     };
     let bb = Backbone::new(&x0, &[], params, cfg).unwrap();
@@ -239,14 +240,32 @@ fn two_body_error(k: f32, c: f32, substep: Substep) -> f32 {
 fn dashpot_matches_closed_form() {
     // Overdamped, the reference rope values (zeta 2.6): the implicit dashpot keeps the slow
     // creep right even though c dt / mu = 0.4 at the automatic substep.
-    let e = two_body_error(17059.0, 480.0, Substep::AUTO);
+    let e = two_body_error(17059.0, 480.0, Substep::AUTO, Dashpot::Implicit);
     assert!(e < 0.01, "overdamped error {e}");
     // Underdamped (zeta 0.07), slow enough that the substep resolves the oscillation.
-    let e = two_body_error(100.0, 1.0, Substep::AUTO);
+    let e = two_body_error(100.0, 1.0, Substep::AUTO, Dashpot::Implicit);
     assert!(e < 0.02, "underdamped error {e}");
     // The reference's own substep converges to the same solution.
-    let e = two_body_error(17059.0, 480.0, Substep::Fixed { dt: 2e-5 });
+    let e = two_body_error(
+        17059.0,
+        480.0,
+        Substep::Fixed { dt: 2e-5 },
+        Dashpot::Implicit,
+    );
     assert!(e < 1e-3, "reference-substep error {e}");
+    // The reference's explicit dashpot at its substep, and at the automatic substep (which
+    // the damping shortens), also match.
+    let e = two_body_error(
+        17059.0,
+        480.0,
+        Substep::Fixed { dt: 2e-5 },
+        Dashpot::Explicit,
+    );
+    assert!(e < 1e-3, "explicit dashpot, reference substep: error {e}");
+    let e = two_body_error(17059.0, 480.0, Substep::AUTO, Dashpot::Explicit);
+    assert!(e < 0.01, "explicit dashpot, automatic substep: error {e}");
+    let e = two_body_error(100.0, 1.0, Substep::AUTO, Dashpot::Explicit);
+    assert!(e < 0.02, "explicit dashpot, underdamped: error {e}");
     let _ = ActionFrame {
         positions: &[],
         closed: &[],
