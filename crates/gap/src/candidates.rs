@@ -10,6 +10,7 @@ use serde::{Deserialize, Serialize};
 use springs::{BackboneOptions, Effect, SpringParams};
 
 use crate::GapError;
+use crate::base::{BaseEffect, check_distinct};
 use crate::forces::{
     ActuationLag, BendingSprings, ExternalField, MassGradient, PlasticCreep, QuadraticDrag,
     SlippingGrasp, StickSlipFriction, StiffnessGradient, StrainStiffening,
@@ -97,7 +98,8 @@ impl Candidate {
                 Parameter::linear("yield_strain", 0.0, 0.1),
                 Parameter::log("creep_rate_per_s", 0.1, 100.0),
             ],
-            Candidate::ActuationDelay => vec![Parameter::linear("delay_steps", 0.0, 3.0)],
+            // Up to 2 s at 10 fps: the reference world allows lags up to 2 s.
+            Candidate::ActuationDelay => vec![Parameter::linear("delay_steps", 0.0, 20.0)],
             Candidate::GraspSlip => vec![
                 Parameter::log("grasp_stiffness_n_per_m", 10.0, 1e5),
                 Parameter::log("slip_force_n", 0.1, 1000.0),
@@ -244,11 +246,16 @@ pub fn principal_axis(points: &[Vec3]) -> Vec3 {
 }
 
 /// The backbone's continuous parameters (stiffness, damping, ground friction) refitted together
-/// with one candidate's (or none: the control refit). Threshold and springs per particle stay at
-/// the fitted values: they change the topology and would make the short refits noisy.
+/// with the base effects' (if any) and one candidate's (or none: the control refit). Threshold
+/// and springs per particle stay at the fitted values: they change the topology and would make
+/// the short refits noisy.
+///
+/// The real parameter vector is `[stiffness, damping, ground friction, base effects' values in
+/// order…, candidate's values…]`.
 #[derive(Debug, Clone)]
 pub struct CandidateFamily {
     base: SpringParams,
+    base_effects: Vec<BaseEffect>,
     candidate: Option<Candidate>,
     frame: MaterialFrame,
     parameters: Parameters,
@@ -256,14 +263,27 @@ pub struct CandidateFamily {
 
 impl CandidateFamily {
     /// The family around the fitted `base`: stiffness and damping within ×/÷ 4 (log scale),
-    /// ground friction in [0, 1].
+    /// ground friction in [0, 1]. No base effects.
     pub fn new(
         base: SpringParams,
         candidate: Option<Candidate>,
         frame: MaterialFrame,
     ) -> Result<Self, GapError> {
+        CandidateFamily::with_base(base, &[], candidate, frame)
+    }
+
+    /// As [`CandidateFamily::new`], with `base_effects` refitted too (from their values). With
+    /// an empty list it is the same family as [`CandidateFamily::new`]. The candidate must not
+    /// be one of the base effects.
+    pub fn with_base(
+        base: SpringParams,
+        base_effects: &[BaseEffect],
+        candidate: Option<Candidate>,
+        frame: MaterialFrame,
+    ) -> Result<Self, GapError> {
         base.validate()
             .map_err(|e| GapError::Config(format!("fitted backbone: {e}")))?;
+        check_distinct(base_effects, candidate)?;
         let k = f64::from(base.stiffness).max(1e-3);
         let c = f64::from(base.damping).max(1e-3);
         let mut p = vec![
@@ -275,11 +295,17 @@ impl CandidateFamily {
                 1.0_f64.max(f64::from(base.ground_friction)),
             ),
         ];
+        for b in base_effects {
+            // Re-checked here: the fields are public, so a list may not come from `new`.
+            BaseEffect::new(b.effect, b.values.clone())?;
+            p.extend(b.effect.parameters());
+        }
         if let Some(cand) = candidate {
             p.extend(cand.parameters());
         }
         Ok(CandidateFamily {
             base,
+            base_effects: base_effects.to_vec(),
             candidate,
             frame,
             parameters: Parameters::new(p)?,
@@ -291,7 +317,13 @@ impl CandidateFamily {
         self.candidate
     }
 
-    /// Backbone parameters and effect values of a real vector.
+    /// The base effects (at their starting values).
+    pub fn base_effects(&self) -> &[BaseEffect] {
+        &self.base_effects
+    }
+
+    /// Backbone parameters and effect values (base effects' in order, then the candidate's) of
+    /// a real vector.
     pub fn split(&self, real: &[f64]) -> (SpringParams, Vec<f64>) {
         let params = SpringParams {
             stiffness: real[0] as f32,
@@ -301,12 +333,36 @@ impl CandidateFamily {
         };
         (params, real[3..].to_vec())
     }
+
+    /// The base effects at the values of a real vector (e.g. a refit's best).
+    pub fn base_effects_at(&self, real: &[f64]) -> Vec<BaseEffect> {
+        let mut at = 3;
+        self.base_effects
+            .iter()
+            .map(|b| {
+                let n = b.values.len();
+                let values = real
+                    .get(at..at + n)
+                    .map_or(b.values.clone(), <[f64]>::to_vec);
+                at += n;
+                BaseEffect {
+                    effect: b.effect,
+                    values,
+                }
+            })
+            .collect()
+    }
 }
 
 impl Family for CandidateFamily {
     fn name(&self) -> String {
+        let base: String = self
+            .base_effects
+            .iter()
+            .map(|b| format!("+{}", b.effect.name()))
+            .collect();
         format!(
-            "spring-mass+{}",
+            "spring-mass{base}+{}",
             self.candidate.map_or("control", |c| c.name())
         )
     }
@@ -320,6 +376,9 @@ impl Family for CandidateFamily {
             f64::from(b.damping).max(1e-3),
             f64::from(b.ground_friction),
         ];
+        for e in &self.base_effects {
+            x.extend(&e.values);
+        }
         if let Some(c) = self.candidate {
             x.extend(c.start());
         }
@@ -327,10 +386,19 @@ impl Family for CandidateFamily {
     }
     fn build(&self, real: &[f64]) -> (SpringParams, BackboneOptions) {
         let (params, values) = self.split(real);
-        let effects = self
-            .candidate
-            .map(|c| vec![c.effect(&values, &self.frame)])
-            .unwrap_or_default();
+        let mut effects = Vec::with_capacity(self.base_effects.len() + 1);
+        let mut at = 0;
+        for b in &self.base_effects {
+            let n = b.values.len();
+            effects.push(
+                b.effect
+                    .effect(values.get(at..).unwrap_or(&[]), &self.frame),
+            );
+            at += n;
+        }
+        if let Some(c) = self.candidate {
+            effects.push(c.effect(values.get(at..).unwrap_or(&[]), &self.frame));
+        }
         (
             params,
             BackboneOptions {

@@ -10,6 +10,7 @@ use serde::{Deserialize, Serialize};
 use springs::SpringParams;
 
 use crate::GapError;
+use crate::base::{BaseEffect, check_distinct};
 use crate::candidates::{Candidate, CandidateFamily, MaterialFrame};
 use crate::locate::{Where, locate};
 use crate::stats::{Comparison, Verdict, VerdictRule, decide, paired_shrinkage};
@@ -31,8 +32,12 @@ pub struct DiagnoseConfig {
     pub resamples: usize,
     /// Verdict thresholds.
     pub rule: VerdictRule,
-    /// Library candidates to try.
+    /// Library candidates to try (those among `base` are skipped).
     pub candidates: Vec<Candidate>,
+    /// Effects already part of the model: refitted with the backbone in the control and in
+    /// every candidate refit (empty: the plain backbone).
+    #[serde(default)]
+    pub base: Vec<BaseEffect>,
     /// Also fit the generic external-field probe (needed for `unknown`).
     pub probe: bool,
     /// Training scenes used for the residual signatures.
@@ -50,6 +55,7 @@ impl Default for DiagnoseConfig {
             resamples: 2000,
             rule: VerdictRule::default(),
             candidates: Candidate::LIBRARY.to_vec(),
+            base: Vec::new(),
             probe: true,
             signature_scenes: 4,
         }
@@ -99,6 +105,22 @@ pub struct RankedEffect {
     pub refit_wall_s: f64,
 }
 
+/// The control refit: the backbone (and the base effects, if any) refitted without a candidate.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct ControlFit {
+    /// Fitted parameters: the backbone's three continuous ones, then the base effects'.
+    pub fitted: Vec<(String, f64)>,
+    /// Base effects at their refitted values (the form `--with` reads:
+    /// [`BaseEffect::label`]).
+    pub base: Vec<BaseEffect>,
+    /// Held-out MDE, cm (the "before" of every candidate).
+    pub heldout_mde_cm: f64,
+    /// Best training loss of the refit, m².
+    pub train_loss_m2: f64,
+    /// Wall time of the refit, s.
+    pub refit_wall_s: f64,
+}
+
 /// Before / after for the verdict's effect.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct HowFar {
@@ -131,14 +153,28 @@ pub struct Diagnosis {
     pub r#where: Where,
     /// Before / after the verdict's effect.
     pub how_far: Option<HowFar>,
-    /// The fitted backbone as given, on held-out episodes.
+    /// The fitted backbone as given (with the base effects at their given values), on
+    /// held-out episodes.
     pub backbone_as_given: Heldout,
+    /// The control refit.
+    #[serde(default)]
+    pub control: ControlFit,
     /// The settings.
     pub config: DiagnoseConfig,
     /// Training / held-out episodes.
     pub episodes: [usize; 2],
     /// Wall time, s.
     pub wall_s: f64,
+}
+
+fn fitted_names(family: &CandidateFamily, real: &[f64]) -> Vec<(String, f64)> {
+    family
+        .parameters()
+        .params()
+        .iter()
+        .map(|p| p.name.clone())
+        .zip(real.iter().copied())
+        .collect()
 }
 
 struct Model {
@@ -210,22 +246,31 @@ fn heldout(
 /// `pred(start) − pred(neutral)` over the tracked, visible positions of `scenes`.
 fn signature_cosine(
     base: &SpringParams,
+    base_effects: &[BaseEffect],
     cand: Candidate,
     frame: &MaterialFrame,
     scenes: &[Scene],
 ) -> f64 {
+    // The base effects stay at their given values in all three rollouts.
+    let with = |extra: Option<&[f64]>| {
+        let mut effects: Vec<Box<dyn springs::Effect>> = base_effects
+            .iter()
+            .map(|b| b.effect.effect(&b.values, frame))
+            .collect();
+        if let Some(v) = extra {
+            effects.push(cand.effect(v, frame));
+        }
+        springs::BackboneOptions {
+            masses: None,
+            effects,
+        }
+    };
     let parts: Vec<(f64, f64, f64)> = scenes
         .par_iter()
         .map(|s| {
             let cfg = s.sim_config();
-            let run = |v: &[f64]| {
-                let options = springs::BackboneOptions {
-                    masses: None,
-                    effects: vec![cand.effect(v, frame)],
-                };
-                s.rollout(base, &cfg, options).ok()
-            };
-            let plain = s.rollout(base, &cfg, Default::default()).ok();
+            let run = |v: &[f64]| s.rollout(base, &cfg, with(Some(v))).ok();
+            let plain = s.rollout(base, &cfg, with(None)).ok();
             let (Some(plain), Some(on), Some(off)) =
                 (plain, run(&cand.start()), run(&cand.neutral()))
             else {
@@ -311,9 +356,10 @@ pub fn diagnose(
         sigma0: config.sigma0,
         seed: config.seed,
     };
+    check_distinct(&config.base, None)?;
     let refit = |cand: Option<Candidate>| -> Result<Model, GapError> {
         let t = Instant::now();
-        let family = CandidateFamily::new(*base, cand, frame.clone())?;
+        let family = CandidateFamily::with_base(*base, &config.base, cand, frame.clone())?;
         let out = fit::fit(train, &family, &fit_cfg, None, &mut |_| {})?;
         Ok(Model {
             family,
@@ -323,7 +369,7 @@ pub fn diagnose(
         })
     };
     // The fitted backbone as given.
-    let given = CandidateFamily::new(*base, None, frame.clone())?;
+    let given = CandidateFamily::with_base(*base, &config.base, None, frame.clone())?;
     let given_real = given.x0();
     let given_preds: Vec<Option<Vec<Vec<Vec3>>>> = val
         .par_iter()
@@ -342,12 +388,32 @@ pub fn diagnose(
     ));
     let control = refit(None)?;
     let control_h = heldout(&control.family, &control.real, val, None, false)?;
+    let control_fit = ControlFit {
+        fitted: fitted_names(&control.family, &control.real),
+        base: control.family.base_effects_at(&control.real),
+        heldout_mde_cm: control_h.mde_cm,
+        train_loss_m2: control.train_loss,
+        refit_wall_s: control.wall_s,
+    };
+    let base_note: Vec<String> = control_fit.base.iter().map(BaseEffect::label).collect();
     progress(&format!(
-        "control refit: held-out MDE {:.3} cm ({:.1} s)",
-        control_h.mde_cm, control.wall_s
+        "control refit{}: held-out MDE {:.3} cm ({:.1} s)",
+        if base_note.is_empty() {
+            String::new()
+        } else {
+            format!(" (base {})", base_note.join(", "))
+        },
+        control_h.mde_cm,
+        control.wall_s
     ));
     let sig_scenes = &train[..config.signature_scenes.clamp(1, train.len())];
-    let mut all = config.candidates.clone();
+    // A base effect is part of the model, not a candidate.
+    let mut all: Vec<Candidate> = config
+        .candidates
+        .iter()
+        .copied()
+        .filter(|c| !config.base.iter().any(|b| b.effect == *c))
+        .collect();
     if config.probe {
         all.push(Candidate::ExternalField);
     }
@@ -362,12 +428,6 @@ pub fn diagnose(
             config.resamples,
             config.seed ^ (k as u64 + 1),
         )?;
-        let names = model
-            .family
-            .parameters()
-            .params()
-            .iter()
-            .map(|p| p.name.clone());
         let entry = RankedEffect {
             effect: cand.name().to_string(),
             heldout_mde_before_cm: control_h.mde_cm,
@@ -375,8 +435,8 @@ pub fn diagnose(
             shrinkage: cmp.shrinkage,
             ci95: cmp.ci95,
             significant: cmp.significant(config.rule.min_shrinkage),
-            signature_cosine: signature_cosine(base, *cand, &frame, sig_scenes),
-            fitted: names.zip(model.real.iter().copied()).collect(),
+            signature_cosine: signature_cosine(base, &config.base, *cand, &frame, sig_scenes),
+            fitted: fitted_names(&model.family, &model.real),
             train_loss_m2: model.train_loss,
             refit_wall_s: model.wall_s,
         };
@@ -469,8 +529,83 @@ pub fn diagnose(
         r#where: place,
         how_far,
         backbone_as_given,
+        control: control_fit,
         config: config.clone(),
         episodes: [train.len(), val.len()],
         wall_s: t0.elapsed().as_secs_f64(),
     })
+}
+
+/// Held-out metrics of a fixed model (no refit): the backbone `params` with `effects` at their
+/// values, rolled out on every scene of `scenes` (MDE and Chamfer; EMD not computed). `frame`
+/// places the spatial effects ([`material_frame`] of the training data). Errors if the model
+/// diverges on a scene.
+pub fn evaluate(
+    frame: &MaterialFrame,
+    scenes: &[Scene],
+    params: &SpringParams,
+    effects: &[BaseEffect],
+) -> Result<Heldout, GapError> {
+    if scenes.is_empty() {
+        return Err(GapError::NoScenes("evaluation"));
+    }
+    let family = CandidateFamily::with_base(*params, effects, None, frame.clone())?;
+    heldout(&family, &family.x0(), scenes, None, false)
+}
+
+impl Diagnosis {
+    /// A model refitted in this diagnosis, ready to be the base of the next one: the control
+    /// (`effect` = None) or the control plus a ranked library candidate, as backbone parameters
+    /// (threshold and springs per particle from `given`, the backbone the diagnosis started
+    /// from) and base effects at their refitted values (the candidate last).
+    pub fn refitted_model(
+        &self,
+        given: &SpringParams,
+        effect: Option<Candidate>,
+    ) -> Result<(SpringParams, Vec<BaseEffect>), GapError> {
+        let fitted = match effect {
+            None => &self.control.fitted,
+            Some(c) => {
+                &self
+                    .ranking
+                    .iter()
+                    .find(|r| r.effect == c.name())
+                    .ok_or_else(|| {
+                        GapError::Config(format!("{} was not ranked in this diagnosis", c.name()))
+                    })?
+                    .fitted
+            }
+        };
+        let v: Vec<f64> = fitted.iter().map(|(_, v)| *v).collect();
+        let layout: Vec<Candidate> = self
+            .config
+            .base
+            .iter()
+            .map(|b| b.effect)
+            .chain(effect)
+            .collect();
+        let need = 3 + layout.iter().map(|c| c.parameters().len()).sum::<usize>();
+        if v.len() != need {
+            return Err(GapError::Config(format!(
+                "the report holds {} fitted values, the model needs {need}",
+                v.len()
+            )));
+        }
+        let params = SpringParams {
+            stiffness: v[0] as f32,
+            damping: v[1] as f32,
+            ground_friction: v[2] as f32,
+            ..*given
+        };
+        let mut at = 3;
+        let effects = layout
+            .into_iter()
+            .map(|c| {
+                let n = c.parameters().len();
+                at += n;
+                BaseEffect::new(c, v[at - n..at].to_vec())
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        Ok((params, effects))
+    }
 }

@@ -248,6 +248,20 @@ pub fn render_html(d: &Diagnosis, title: &str) -> String {
         d.backbone_as_given.mde_cm,
         d.wall_s
     );
+    let base: Vec<String> = d.control.base.iter().map(|b| b.label()).collect();
+    let _ = write!(
+        body,
+        "<p>Model diagnosed: spring-mass backbone{}. Control refit: held-out MDE {:.3} cm.</p>",
+        if base.is_empty() {
+            " alone".to_string()
+        } else {
+            esc(&format!(
+                " + base effects {} (refitted with it; values after the control refit)",
+                base.join(", ")
+            ))
+        },
+        d.control.heldout_mde_cm
+    );
     if let Some(h) = &d.how_far {
         let _ = write!(body, "<h2>How far: adding {}</h2>", esc(&h.effect));
         body += &table(

@@ -12,6 +12,9 @@
 //!   the training scenes with the same small CMA-ES budget, scores all on held-out scenes,
 //!   bootstraps the shrinkage over episodes ([`paired_shrinkage`]) and applies the verdict
 //!   rule ([`decide`]): an effect, `none` or `unknown`.
+//! - A model may already hold some library effects ([`BaseEffect`], e.g. the verdict of an
+//!   earlier diagnosis): they are refitted with the backbone in the control and in every
+//!   candidate refit, so the diagnosis ranks the remaining candidates against that model.
 //! - [`render_html`] turns a [`Diagnosis`] into a self-contained page.
 //!
 //! Method, formulas, parameter ranges and measured bench results: `docs/gap.md`.
@@ -27,6 +30,7 @@
 //! # Ok::<(), gap::GapError>(())
 //! ```
 
+mod base;
 mod candidates;
 mod diagnose;
 pub mod forces;
@@ -34,9 +38,11 @@ mod html;
 mod locate;
 mod stats;
 
+pub use base::BaseEffect;
 pub use candidates::{Candidate, CandidateFamily, MaterialFrame, principal_axis};
 pub use diagnose::{
-    DiagnoseConfig, Diagnosis, Heldout, HowFar, RankedEffect, diagnose, material_frame,
+    ControlFit, DiagnoseConfig, Diagnosis, Heldout, HowFar, RankedEffect, diagnose, evaluate,
+    material_frame,
 };
 pub use html::render_html;
 pub use locate::{Bin, CONTACT_HEIGHT_M, Trend, Where, locate, spearman};

@@ -55,6 +55,9 @@ fn report_json_has_the_documented_schema() {
     }
     // Sorted by shrinkage, best first.
     assert!(ranking[0]["shrinkage"].as_f64() >= ranking[1]["shrinkage"].as_f64());
+    assert_eq!(v["control"]["fitted"].as_array().unwrap().len(), 3);
+    assert!(v["control"]["heldout_mde_cm"].as_f64().unwrap().is_finite());
+    assert!(v["config"]["base"].as_array().unwrap().is_empty());
     let w = &v["where"];
     assert_eq!(
         w["per_particle_cm"].as_array().unwrap().len(),

@@ -1,0 +1,159 @@
+//! Base effects: with none the diagnosis is the plain-backbone diagnosis; a base effect is
+//! refitted in the control, is not ranked as a candidate, and its refitted model reproduces the
+//! control's held-out error.
+
+use fit::{Family, FitConfig};
+use gap::{BaseEffect, Candidate, CandidateFamily, DiagnoseConfig};
+use scene::{Protocol, Scene, SceneConfig};
+
+fn scenes(split: dataset::Split) -> Vec<Scene> {
+    let root = concat!(env!("CARGO_MANIFEST_DIR"), "/../../fixtures/rope");
+    let data = dataset::Dataset::open(root).unwrap();
+    data.split_indices(split)
+        .into_iter()
+        .map(|i| {
+            let ep = data.load_episode(i).unwrap();
+            let w = Protocol::Paper.window(ep.frames()).unwrap();
+            Scene::new(&data.meta, &ep, w, &SceneConfig::default()).unwrap()
+        })
+        .collect()
+}
+
+fn backbone() -> springs::SpringParams {
+    springs::SpringParams {
+        threshold: 0.03,
+        max_springs: 20,
+        ..springs::SpringParams::reference_rope()
+    }
+}
+
+fn tiny(base: Vec<BaseEffect>) -> DiagnoseConfig {
+    DiagnoseConfig {
+        population: 4,
+        generations: 2,
+        samples: 1,
+        resamples: 50,
+        candidates: vec![Candidate::Drag, Candidate::Bending],
+        base,
+        probe: false,
+        signature_scenes: 1,
+        ..DiagnoseConfig::default()
+    }
+}
+
+/// Held-out MDE (cm) of a model, computed here from the scene API rather than by the crate.
+fn mde_cm(family: &CandidateFamily, real: &[f64], val: &[Scene]) -> f64 {
+    let (params, _) = family.build(real);
+    let per: Vec<f64> = val
+        .iter()
+        .map(|s| {
+            let (_, options) = family.build(real);
+            let pred = s.rollout(&params, &s.sim_config(), options).unwrap();
+            let e = scene::score_steps(s, &pred, false).unwrap();
+            100.0 * e.iter().map(|x| x.mde).sum::<f64>() / e.len() as f64
+        })
+        .collect();
+    per.iter().sum::<f64>() / val.len() as f64
+}
+
+#[test]
+fn without_base_effects_the_control_is_the_plain_backbone_refit() {
+    let (train, val) = (scenes(dataset::Split::Train), scenes(dataset::Split::Val));
+    let cfg = tiny(Vec::new());
+    let d = gap::diagnose(&train, &val, &backbone(), &cfg, &mut |_| {}).unwrap();
+    // The same refit done by hand with the plain family (stiffness, damping, friction only).
+    let frame = gap::material_frame(&train).unwrap();
+    let plain = CandidateFamily::new(backbone(), None, frame).unwrap();
+    assert_eq!(plain.name(), "spring-mass+control");
+    let fit_cfg = FitConfig {
+        population: cfg.population,
+        generations: cfg.generations,
+        samples: cfg.samples,
+        sigma0: cfg.sigma0,
+        seed: cfg.seed,
+    };
+    let out = fit::fit(&train, &plain, &fit_cfg, None, &mut |_| {}).unwrap();
+    let fitted: Vec<f64> = d.control.fitted.iter().map(|(_, v)| *v).collect();
+    assert_eq!(fitted, out.best, "bit-identical refit");
+    assert_eq!(d.control.fitted.len(), 3);
+    assert!(d.control.base.is_empty());
+    assert_eq!(
+        d.control.heldout_mde_cm.to_bits(),
+        mde_cm(&plain, &out.best, &val).to_bits()
+    );
+    assert_eq!(d.ranking.len(), 2);
+    for r in &d.ranking {
+        assert_eq!(r.heldout_mde_before_cm, d.control.heldout_mde_cm);
+    }
+}
+
+#[test]
+fn a_base_effect_is_refitted_in_the_control_and_not_ranked() {
+    let (train, val) = (scenes(dataset::Split::Train), scenes(dataset::Split::Val));
+    let start = BaseEffect::parse("bending=0.05").unwrap();
+    let cfg = tiny(vec![start.clone()]);
+    let d = gap::diagnose(&train, &val, &backbone(), &cfg, &mut |_| {}).unwrap();
+    // Bending is part of the model, so only drag is ranked.
+    let ranked: Vec<&str> = d.ranking.iter().map(|r| r.effect.as_str()).collect();
+    assert_eq!(ranked, ["drag"]);
+    // The control refitted the bending stiffness along with the backbone.
+    let names: Vec<&str> = d.control.fitted.iter().map(|(n, _)| n.as_str()).collect();
+    assert_eq!(
+        names,
+        [
+            "stiffness_n_per_m",
+            "damping_ns_per_m",
+            "ground_friction",
+            "bending_relative_stiffness"
+        ]
+    );
+    let kappa = d.control.fitted[3].1;
+    assert!(kappa != 0.05 && (1e-3..=1.0).contains(&kappa), "{kappa}");
+    assert_eq!(d.control.base[0].effect, Candidate::Bending);
+    assert_eq!(d.control.base[0].values, vec![kappa]);
+    // The drag refit carries the base effect too: backbone, bending, drag.
+    assert_eq!(d.ranking[0].fitted.len(), 5);
+    assert_eq!(d.ranking[0].fitted[3].0, "bending_relative_stiffness");
+    // The refitted control, evaluated as a fixed model, reproduces its held-out error.
+    let (params, base) = d.refitted_model(&backbone(), None).unwrap();
+    let frame = gap::material_frame(&train).unwrap();
+    let again = gap::evaluate(&frame, &val, &params, &base).unwrap();
+    assert_eq!(again.mde_cm.to_bits(), d.control.heldout_mde_cm.to_bits());
+    // ... and the bending springs matter: without them the error differs.
+    let bare = gap::evaluate(&frame, &val, &params, &[]).unwrap();
+    assert_ne!(bare.mde_cm, again.mde_cm);
+    // The next iteration's base: the control plus drag, at its refitted values.
+    let (_, next) = d
+        .refitted_model(&backbone(), Some(Candidate::Drag))
+        .unwrap();
+    let effects: Vec<Candidate> = next.iter().map(|b| b.effect).collect();
+    assert_eq!(effects, [Candidate::Bending, Candidate::Drag]);
+    assert_eq!(
+        serde_json::to_value(&d).unwrap()["config"]["base"][0]["effect"],
+        "bending"
+    );
+}
+
+#[test]
+fn bad_base_lists_are_errors() {
+    let (train, val) = (scenes(dataset::Split::Train), scenes(dataset::Split::Val));
+    assert!(BaseEffect::parse("magnet").is_err());
+    assert!(BaseEffect::parse("external-field").is_err());
+    assert!(BaseEffect::parse("bending=0.1:0.2").is_err());
+    assert!(BaseEffect::parse("bending=x").is_err());
+    assert!(BaseEffect::parse_list("drag,drag").is_err());
+    let b = BaseEffect::parse("drag").unwrap();
+    let twice = tiny(vec![b.clone(), b.clone()]);
+    let r = gap::diagnose(&train, &val, &backbone(), &twice, &mut |_| {});
+    assert!(matches!(r, Err(gap::GapError::Config(_))));
+    let frame = gap::material_frame(&train).unwrap();
+    assert!(CandidateFamily::with_base(backbone(), &[b], Some(Candidate::Drag), frame).is_err());
+    // A refitted value an ulp past a bound is clamped, not refused.
+    let top = BaseEffect::new(Candidate::Bending, vec![1.0 + 1e-12]).unwrap();
+    assert_eq!(top.values, vec![1.0]);
+    let fitted = BaseEffect::new(Candidate::Bending, vec![0.025408515726371702]).unwrap();
+    assert_eq!(fitted.label(), "bending=0.0254085157");
+    let label = BaseEffect::parse("plasticity=0.02:5").unwrap().label();
+    assert_eq!(label, "plasticity=0.02:5");
+    assert_eq!(BaseEffect::parse(&label).unwrap().values, vec![0.02, 5.0]);
+}
