@@ -1,7 +1,9 @@
 //! One MPPI replanning step at the paper's cable-rerouting settings (15 samples, horizon 15,
 //! 6 iterations: 1350 model steps) on the rerouting task's rope (150 observed points), with the
 //! spring-mass backbone and with PGRD: the network `PGRD_RESIDUAL` names (a
-//! `residual.safetensors`), or an untrained one of the default architecture (same cost).
+//! `residual.safetensors`), or an untrained one of the default architecture (same cost). MPPI
+//! hands each iteration's candidates to `ForwardModel::rollout_batch`, which PGRD evaluates
+//! through `residual::predict_batch`.
 //! Run with `RAYON_NUM_THREADS=2` to match the 2-core budget of `docs/plan.md`. Besides the
 //! wall time, it prints the process CPU time per replanning step (all threads, from
 //! `/proc/self/stat` on Linux), which other jobs on a shared machine do not inflate.

@@ -4,6 +4,7 @@
 use std::sync::Arc;
 
 use glam::Vec3;
+use rayon::prelude::*;
 use springs::{Actions, Backbone, State};
 
 use crate::{PlanError, Result};
@@ -105,11 +106,28 @@ impl ModelState {
 /// entries; frame 0 of `actions` is where the grippers are now). It must be deterministic and
 /// safe to call from several threads at once: the planner evaluates candidates in parallel.
 /// An `Err` drops that candidate without stopping the planner.
+///
+/// The planner hands a whole population to [`ForwardModel::rollout_batch`]; its default runs
+/// `rollout` for each candidate in parallel. Models that can evaluate many candidates together
+/// more cheaply (PGRD's network) override it.
 pub trait ForwardModel: Sync {
     /// Particles the model simulates (the length of every predicted frame).
     fn num_particles(&self) -> usize;
     /// Positions after each step of `actions`, m.
     fn rollout(&self, state: &ModelState, actions: &Actions) -> Result<Vec<Vec<Vec3>>>;
+    /// [`ForwardModel::rollout`] from `state` for every candidate of `actions`, one result per
+    /// candidate in input order: a failing candidate gets its own `Err` and does not stop the
+    /// others. Results must not depend on the number of threads.
+    ///
+    /// The default runs the candidates in parallel on the current rayon pool, each on one
+    /// thread.
+    fn rollout_batch(
+        &self,
+        state: &ModelState,
+        actions: &[Actions],
+    ) -> Vec<Result<Vec<Vec<Vec3>>>> {
+        actions.par_iter().map(|a| self.rollout(state, a)).collect()
+    }
     /// A short name for reports ("spring-mass", "pgrd").
     fn name(&self) -> &str;
 }
@@ -189,6 +207,49 @@ impl ForwardModel for Pgrd {
         let steps = actions.num_frames().saturating_sub(1);
         residual::predict(&self.net, &self.backbone, &init, &history, actions, steps)
             .map_err(|e| PlanError::Model(e.to_string()))
+    }
+
+    /// All candidates through [`residual::predict_batch`]: one network call per step on all
+    /// candidates' clouds instead of one per candidate (the network's cost is mostly fixed
+    /// per-operation overhead). Each candidate's prediction equals its own `rollout` up to
+    /// float summation order.
+    fn rollout_batch(
+        &self,
+        state: &ModelState,
+        actions: &[Actions],
+    ) -> Vec<Result<Vec<Vec<Vec3>>>> {
+        let init = State {
+            x: state.x.clone(),
+            v: state.v.clone(),
+        };
+        let history = residual::History {
+            x: state.past_x.clone(),
+            v: state.past_v.clone(),
+        };
+        let jobs: Vec<residual::PredictJob<'_>> = actions
+            .iter()
+            .map(|a| residual::PredictJob {
+                backbone: &self.backbone,
+                init: &init,
+                history: &history,
+                actions: a,
+                steps: a.num_frames().saturating_sub(1),
+            })
+            .collect();
+        match residual::predict_batch(&self.net, &jobs) {
+            Ok(out) => out
+                .into_iter()
+                .map(|r| r.map_err(|e| PlanError::Model(e.to_string())))
+                .collect(),
+            // The network evaluation itself failed: no candidate has a prediction.
+            Err(e) => {
+                let msg = e.to_string();
+                actions
+                    .iter()
+                    .map(|_| Err(PlanError::Model(msg.clone())))
+                    .collect()
+            }
+        }
     }
 
     fn name(&self) -> &str {

@@ -252,11 +252,47 @@ impl Mppi {
                         .collect()
                 })
                 .collect();
-            let costs: Vec<Result<f64>> = candidates
-                .par_iter()
+            // Gripper paths first, then the whole population through the model at once (a
+            // model may evaluate candidates together), then the costs; a candidate that fails
+            // at any stage is dropped alone.
+            let mut actions = Vec::with_capacity(k);
+            let paths: Vec<Result<Vec<Vec<Vec3>>>> = candidates
+                .iter()
                 .map(|u| {
-                    let (actions, path) = self.gripper_path(grippers, u, objective)?;
-                    let predicted = model.rollout(state, &actions)?;
+                    let (a, path) = self.gripper_path(grippers, u, objective)?;
+                    actions.push(a);
+                    Ok(path)
+                })
+                .collect();
+            let mut predicted = model.rollout_batch(state, &actions);
+            if predicted.len() != actions.len() {
+                let got = predicted.len();
+                predicted = (0..actions.len())
+                    .map(|_| {
+                        Err(PlanError::Mismatch {
+                            what: "model results per batch",
+                            expected: actions.len(),
+                            got,
+                        })
+                    })
+                    .collect();
+            }
+            let mut predicted = predicted.into_iter();
+            let outcomes: Vec<Result<_>> = paths
+                .into_iter()
+                .map(|path| {
+                    let path = path?;
+                    // One result per action sequence (lengths checked above).
+                    let x = predicted.next().unwrap_or_else(|| {
+                        Err(PlanError::Model("no result for a candidate".into()))
+                    })?;
+                    Ok((x, path))
+                })
+                .collect();
+            let costs: Vec<Result<f64>> = outcomes
+                .into_par_iter()
+                .map(|r| {
+                    let (predicted, path) = r?;
                     if predicted.len() != h {
                         return Err(PlanError::Mismatch {
                             what: "predicted steps",

@@ -4,7 +4,7 @@
 use candle_core::Tensor;
 use candle_nn::{Linear, VarBuilder};
 
-use crate::nn::{Mlp, Norm, apply, linear, softmax};
+use crate::nn::{Mlp, Norm, Pass, apply, linear, softmax};
 use crate::serialize::{CURVES, Order, Pooling, Structure};
 use crate::{EncoderKind, ModelConfig, Result};
 
@@ -36,7 +36,7 @@ impl Block {
         })
     }
 
-    fn forward(&self, h: &Tensor, order: &Order) -> Result<Tensor> {
+    fn forward(&self, h: &Tensor, order: &Order, pass: Pass) -> Result<Tensor> {
         let c = h.dim(1)?;
         // Conditional positional encoding: a kernel-3 convolution along the curve, which keeps
         // spatial neighbours together (PTv3 uses a sparse 3-D convolution here).
@@ -48,8 +48,8 @@ impl Block {
             ],
             1,
         )?;
-        let h = (h + self.cpe_norm.forward(&apply(&self.cpe, &nb)?)?)?;
-        let x = self.n1.forward(&h)?;
+        let h = (h + self.cpe_norm.forward(&apply(&self.cpe, &nb)?, pass)?)?;
+        let x = self.n1.forward(&h, pass)?;
         let qkv = apply(&self.qkv, &x)?.index_select(&order.gather, 0)?;
         let (np, p, hd) = (order.patches, order.patch, c / self.heads);
         let qkv = qkv
@@ -60,14 +60,19 @@ impl Block {
         let k = qkv.get(1)?.contiguous()?;
         let v = qkv.get(2)?.contiguous()?;
         let mut s = q.matmul(&k.t()?)?;
-        if let Some(mask) = &order.mask {
-            s = s.broadcast_add(mask)?;
-        }
-        let o = softmax(&s)?.matmul(&v)?;
+        let a = if pass == Pass::Infer {
+            crate::kernels::softmax(&s, order.mask.as_ref())?
+        } else {
+            if let Some(mask) = &order.mask {
+                s = s.broadcast_add(mask)?;
+            }
+            softmax(&s, pass)?
+        };
+        let o = a.matmul(&v)?;
         let o = o.permute((0, 2, 1, 3))?.reshape((np * p, c))?;
         let o = o.index_select(&order.inverse, 0)?;
         let h = (h + apply(&self.proj, &o)?)?;
-        Ok((&h + self.mlp.forward(&self.n2.forward(&h)?)?)?)
+        Ok((&h + self.mlp.forward(&self.n2.forward(&h, pass)?)?)?)
     }
 }
 
@@ -94,10 +99,16 @@ struct Up {
 }
 
 impl Up {
-    fn forward(&self, coarse: &Tensor, skip: &Tensor, pool: &Pooling) -> Result<Tensor> {
+    fn forward(
+        &self,
+        coarse: &Tensor,
+        skip: &Tensor,
+        pool: &Pooling,
+        pass: Pass,
+    ) -> Result<Tensor> {
         let up = apply(&self.coarse, coarse)?.index_select(&pool.cluster, 0)?;
         let h = (up + apply(&self.skip, skip)?)?;
-        Ok(self.norm.forward(&h)?.relu()?)
+        Ok(self.norm.forward(&h, pass)?.relu()?)
     }
 }
 
@@ -195,8 +206,17 @@ impl Encoder {
 
     /// Features `(N, inputs)` → `(N, feature_dim)`. `curves[b % 4]` is the curve block `b`
     /// attends along (shuffled per sample during training).
-    pub fn forward(&self, x: &Tensor, st: &Structure, curves: [usize; CURVES]) -> Result<Tensor> {
-        let mut h = self.embed_norm.forward(&apply(&self.embed, x)?)?.relu()?;
+    pub fn forward(
+        &self,
+        x: &Tensor,
+        st: &Structure,
+        curves: [usize; CURVES],
+        pass: Pass,
+    ) -> Result<Tensor> {
+        let mut h = self
+            .embed_norm
+            .forward(&apply(&self.embed, x)?, pass)?
+            .relu()?;
         let mut skips = Vec::new();
         let mut block = 0usize;
         let mut curve = || {
@@ -218,14 +238,14 @@ impl Encoder {
                 let d = &self.down[k - 1];
                 h = d
                     .norm
-                    .forward(&pool_mean(&apply(&d.proj, &input)?, pool)?)?
+                    .forward(&pool_mean(&apply(&d.proj, &input)?, pool)?, pass)?
                     .relu()?;
             }
             h = match &self.stages {
                 Stages::Ptv3 { enc, .. } => {
                     let mut h = h;
                     for b in &enc[k] {
-                        h = b.forward(&h, &st.levels[k].orders[curve()])?;
+                        h = b.forward(&h, &st.levels[k].orders[curve()], pass)?;
                     }
                     h
                 }
@@ -235,12 +255,12 @@ impl Encoder {
         }
         for (j, u) in self.up.iter().enumerate() {
             let level = s - 2 - j;
-            h = u.forward(&h, &skips[level], &st.pools[level])?;
+            h = u.forward(&h, &skips[level], &st.pools[level], pass)?;
             h = match &self.stages {
                 Stages::Ptv3 { dec, .. } => {
                     let mut h = h;
                     for b in &dec[j] {
-                        h = b.forward(&h, &st.levels[level].orders[curve()])?;
+                        h = b.forward(&h, &st.levels[level].orders[curve()], pass)?;
                     }
                     h
                 }

@@ -28,9 +28,11 @@
 //! ```
 
 mod augment;
+mod batch;
 mod config;
 mod encoder;
 mod error;
+mod kernels;
 mod model;
 mod nn;
 mod rollout;
@@ -38,6 +40,7 @@ mod serialize;
 mod train;
 
 pub use augment::{rotate_history, rotate_scene};
+pub use batch::{JobResult, PredictJob, predict_batch};
 pub use config::{Combine, EncoderKind, InputConvention, ModelConfig, ResidualKind};
 pub use error::{ResidualError, Result};
 pub use model::{INPUTS, ResidualNet};

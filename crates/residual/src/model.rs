@@ -9,7 +9,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use crate::encoder::Encoder;
-use crate::nn::{Mlp, Norm, apply, linear, sigmoid, softmax};
+use crate::nn::{Mlp, Norm, Pass, apply, linear, sigmoid, softmax};
 use crate::serialize::{CURVES, Structure};
 use crate::{Combine, ModelConfig, ResidualError, Result};
 
@@ -260,8 +260,8 @@ impl ResidualNet {
         )?;
         let flat: Vec<f32> = pos.iter().flat_map(|p| p.to_array()).collect();
         let p = Tensor::from_vec(flat, (pos.len(), 3), &self.device)?;
-        let r = self.decode(feats, &p, &st, [0, 1, 2, 3])?;
-        self.aggregate(&[r])
+        let r = self.decode(feats, &p, &st, [0, 1, 2, 3], Pass::Grad)?;
+        self.aggregate(&[r], Pass::Grad)
     }
 
     /// Decoder output `r ∈ (−1, 1)^3` per particle from the `(N, INPUTS)` features and the
@@ -272,8 +272,9 @@ impl ResidualNet {
         pos: &Tensor,
         st: &Structure,
         curves: [usize; CURVES],
+        pass: Pass,
     ) -> Result<Tensor> {
-        let f = self.encoder.forward(feats, st, curves)?;
+        let f = self.encoder.forward(feats, st, curves, pass)?;
         let out = match &self.head {
             Head::Fourier { layers, bands } => {
                 let mut parts = vec![pos.clone()];
@@ -297,7 +298,7 @@ impl ResidualNet {
     /// The bounded residual `Δ (N, 3)` in m/s from the window of decoder outputs (oldest
     /// first; its last entry is the current `r`; shorter windows are left-padded with copies
     /// of the newest).
-    pub(crate) fn aggregate(&self, window: &[Tensor]) -> Result<Tensor> {
+    pub(crate) fn aggregate(&self, window: &[Tensor], pass: Pass) -> Result<Tensor> {
         let s = f64::from(self.cfg.residual_scale);
         let r = window
             .last()
@@ -335,11 +336,13 @@ impl ResidualNet {
                 .broadcast_mul(&k.unsqueeze(2)?)?
                 .sum(D::Minus1)?
                 * (1.0 / (hd as f64).sqrt()))?;
-            let a = softmax(&scores)?;
+            let a = softmax(&scores, pass)?;
             let o = a.unsqueeze(4)?.broadcast_mul(&v.unsqueeze(2)?)?.sum(3)?;
             let o = o.permute((0, 2, 1, 3))?.reshape((n, wq, d))?;
-            let x = layer.n1.forward(&(resid + apply(&layer.proj, &o)?)?)?;
-            h = layer.n2.forward(&(&x + layer.ff.forward(&x)?)?)?;
+            let x = layer
+                .n1
+                .forward(&(resid + apply(&layer.proj, &o)?)?, pass)?;
+            h = layer.n2.forward(&(&x + layer.ff.forward(&x)?)?, pass)?;
         }
         let last = h.narrow(1, h.dim(1)? - 1, 1)?.squeeze(1)?;
         let delta = apply(&t.delta, &last)?.tanh()?;

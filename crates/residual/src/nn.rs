@@ -6,6 +6,16 @@ use candle_nn::{Init, Linear, VarBuilder};
 
 use crate::Result;
 
+/// Which kernels a forward pass uses: the same function either way, up to float rounding.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum Pass {
+    /// Ops with a backward pass (training, and the single-rollout paths).
+    Grad,
+    /// Forward-only sequential kernels for LayerNorm and (masked) softmax (`kernels.rs`): one
+    /// pass over memory instead of about ten, for predictions that need no gradient.
+    Infer,
+}
+
 /// Layer normalisation over the last dimension, composed of differentiable ops.
 #[derive(Debug, Clone)]
 pub(crate) struct Norm {
@@ -21,7 +31,10 @@ impl Norm {
         })
     }
 
-    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+    pub fn forward(&self, x: &Tensor, pass: Pass) -> Result<Tensor> {
+        if pass == Pass::Infer {
+            return crate::kernels::layer_norm(x, &self.gamma, &self.beta, 1e-5);
+        }
         Ok(candle_nn::ops::layer_norm_slow(
             x,
             &self.gamma,
@@ -57,8 +70,11 @@ pub(crate) fn sigmoid(x: &Tensor) -> Result<Tensor> {
     Ok((x.neg()?.exp()? + 1.0)?.recip()?)
 }
 
-/// Softmax over the last dimension with a backward pass.
-pub(crate) fn softmax(x: &Tensor) -> Result<Tensor> {
+/// Softmax over the last dimension (with a backward pass unless `pass` is `Infer`).
+pub(crate) fn softmax(x: &Tensor, pass: Pass) -> Result<Tensor> {
+    if pass == Pass::Infer {
+        return crate::kernels::softmax(x, None);
+    }
     Ok(candle_nn::ops::softmax(x, D::Minus1)?)
 }
 

@@ -9,11 +9,12 @@ use scene::Scene;
 use springs::{Actions, Backbone, SimError, State};
 
 use crate::model::{INPUTS, ResidualNet};
+use crate::nn::Pass;
 use crate::serialize::{CURVES, Structure};
 use crate::{ResidualError, ResidualKind, Result};
 
 /// Hybrid positions farther than this from the object's centre mean the rollout diverged, m.
-const DIVERGED_M: f32 = 100.0;
+pub(crate) const DIVERGED_M: f32 = 100.0;
 
 /// The two frames before a rollout's start (the network's history inputs).
 #[derive(Clone, Debug, PartialEq)]
@@ -287,7 +288,7 @@ fn run(
             cfg.patch,
             &dev,
         )?;
-        let r = net.decode(&feats, &pos, &st, opts.curves)?;
+        let r = net.decode(&feats, &pos, &st, opts.curves, Pass::Grad)?;
         window.push(r);
         if window.len() > cfg.window {
             window.remove(0);
@@ -300,7 +301,7 @@ fn run(
             })
             .collect();
         let free = Tensor::from_vec(free, (n, 1), &dev)?;
-        let delta = net.aggregate(&window)?.broadcast_mul(&free)?;
+        let delta = net.aggregate(&window, Pass::Grad)?.broadcast_mul(&free)?;
         let (nx, nv) = match cfg.residual {
             ResidualKind::Velocity => ((&x_sim + (&delta * f64::from(dt))?)?, (&v_sim + &delta)?),
             ResidualKind::Position => ((&x_sim + (&delta * f64::from(dt))?)?, v_sim.clone()),

@@ -12,7 +12,7 @@ use std::collections::BTreeMap;
 use candle_core::{Device, Tensor};
 use glam::Vec3;
 
-use crate::Result;
+use crate::{ResidualError, Result};
 
 /// Bits per axis of the curve codes (cells beyond 2^16 per axis are clamped).
 const BITS: u32 = 16;
@@ -82,32 +82,49 @@ fn cells(pos: &[Vec3], grid: f32) -> Vec<[u32; 3]> {
         .collect()
 }
 
-/// Curve code of each point: 0 Z-order, 1 transposed Z-order, 2 Hilbert, 3 transposed Hilbert.
-pub(crate) fn curve_codes(pos: &[Vec3], grid: f32, curve: usize) -> Vec<u64> {
-    cells(pos, grid)
-        .into_iter()
-        .map(|[a, b, c]| match curve {
-            0 => interleave(a, b, c),
-            1 => interleave(b, a, c),
-            2 => hilbert([a, b, c]),
-            _ => hilbert([b, a, c]),
-        })
-        .collect()
+/// Curve code of a cell: 0 Z-order, 1 transposed Z-order, 2 Hilbert, 3 transposed Hilbert.
+fn curve_code([a, b, c]: [u32; 3], curve: usize) -> u64 {
+    match curve {
+        0 => interleave(a, b, c),
+        1 => interleave(b, a, c),
+        2 => hilbert([a, b, c]),
+        _ => hilbert([b, a, c]),
+    }
 }
 
-/// Point indices sorted along a curve; ties broken by exact coordinates.
+/// An integer with the order of `f32::total_cmp`.
+fn total_key(x: f32) -> i32 {
+    let b = x.to_bits() as i32;
+    b ^ (((b >> 31) as u32) >> 1) as i32
+}
+
+/// Point indices sorted along each of the four curves; ties broken by exact coordinates, then
+/// by index. The grid cells and tie keys are computed once for all curves.
+pub(crate) fn curve_orders(pos: &[Vec3], grid: f32) -> [Vec<u32>; CURVES] {
+    let cells = cells(pos, grid);
+    let ties: Vec<[i32; 3]> = pos
+        .iter()
+        .map(|p| [total_key(p.x), total_key(p.y), total_key(p.z)])
+        .collect();
+    let mut keys: Vec<(u64, [i32; 3], u32)> = Vec::with_capacity(pos.len());
+    std::array::from_fn(|curve| {
+        keys.clear();
+        keys.extend(
+            cells
+                .iter()
+                .zip(&ties)
+                .enumerate()
+                .map(|(i, (c, t))| (curve_code(*c, curve), *t, i as u32)),
+        );
+        keys.sort_unstable();
+        keys.iter().map(|k| k.2).collect()
+    })
+}
+
+/// Point indices sorted along one curve (see [`curve_orders`]).
+#[cfg(test)]
 pub(crate) fn curve_order(pos: &[Vec3], grid: f32, curve: usize) -> Vec<u32> {
-    let codes = curve_codes(pos, grid, curve);
-    let mut idx: Vec<u32> = (0..pos.len() as u32).collect();
-    idx.sort_by(|&i, &j| {
-        let (a, b) = (pos[i as usize], pos[j as usize]);
-        codes[i as usize]
-            .cmp(&codes[j as usize])
-            .then(a.x.total_cmp(&b.x))
-            .then(a.y.total_cmp(&b.y))
-            .then(a.z.total_cmp(&b.z))
-    });
-    idx
+    curve_orders(pos, grid)[curve].clone()
 }
 
 /// One serialization of one level, as index tensors.
@@ -135,26 +152,51 @@ fn u32_tensor(v: &[u32], dev: &Device) -> Result<Tensor> {
 }
 
 impl Order {
-    fn new(order: &[u32], max_patch: usize, dev: &Device) -> Result<Self> {
-        let n = order.len();
-        let patches = n.div_ceil(max_patch).max(1);
-        // Balanced patches: at most `patches - 1` padding slots in all.
-        let patch = n.div_ceil(patches);
-        let padded = patches * patch;
-        let mut gather = order.to_vec();
-        gather.resize(padded, *order.last().unwrap_or(&0));
-        let mut inverse = vec![0u32; n];
-        let (mut prev, mut next) = (vec![0u32; n], vec![0u32; n]);
-        for (k, &i) in order.iter().enumerate() {
-            inverse[i as usize] = k as u32;
-            prev[i as usize] = order[k.saturating_sub(1)];
-            next[i as usize] = order[(k + 1).min(n - 1)];
+    /// The orders of several clouds (`(curve order, index of the cloud's first point)`), as
+    /// one: every cloud is cut into its own balanced patches exactly as it would be alone
+    /// (`⌈n / max_patch⌉` patches of `⌈n / patches⌉` points), and every patch is padded to the
+    /// largest patch size of the batch with masked copies of its cloud's last point, so no
+    /// patch, and no curve neighbourhood, spans two clouds.
+    fn new(clouds: &[(&[u32], u32)], max_patch: usize, dev: &Device) -> Result<Self> {
+        let split: Vec<(usize, usize)> = clouds
+            .iter()
+            .map(|(o, _)| {
+                let patches = o.len().div_ceil(max_patch.max(1));
+                (patches, o.len().div_ceil(patches.max(1)))
+            })
+            .collect();
+        let patch = split.iter().map(|s| s.1).max().unwrap_or(0);
+        let patches: usize = split.iter().map(|s| s.0).sum();
+        let total: usize = clouds.iter().map(|(o, _)| o.len()).sum();
+        let mut gather = Vec::with_capacity(patches * patch);
+        let mut mask = Vec::with_capacity(patches * patch);
+        let mut inverse = vec![0u32; total];
+        let (mut prev, mut next) = (vec![0u32; total], vec![0u32; total]);
+        let mut first_patch = 0;
+        for (&(order, off), &(np, size)) in clouds.iter().zip(&split) {
+            let n = order.len();
+            for (k, &i) in order.iter().enumerate() {
+                let g = (off + i) as usize;
+                inverse[g] = ((first_patch + k / size) * patch + k % size) as u32;
+                prev[g] = off + order[k.saturating_sub(1)];
+                next[g] = off + order[(k + 1).min(n - 1)];
+            }
+            for j in 0..np {
+                for s in 0..patch {
+                    let k = j * size + s;
+                    if s < size && k < n {
+                        gather.push(off + order[k]);
+                        mask.push(0.0f32);
+                    } else {
+                        gather.push(off + order[n - 1]);
+                        mask.push(-1e9);
+                    }
+                }
+            }
+            first_patch += np;
         }
-        let mask = if padded > n {
-            let m: Vec<f32> = (0..padded)
-                .map(|k| if k < n { 0.0 } else { -1e9 })
-                .collect();
-            Some(Tensor::from_vec(m, (patches, 1, 1, patch), dev)?)
+        let mask = if mask.iter().any(|m| *m != 0.0) {
+            Some(Tensor::from_vec(mask, (patches, 1, 1, patch), dev)?)
         } else {
             None
         };
@@ -222,6 +264,49 @@ pub(crate) fn grid_clusters(pos: &[Vec3], grid: f32) -> (Vec<u32>, Vec<Vec3>, Ve
     (cluster, mean, count)
 }
 
+/// The serializations and poolings of one cloud as plain index arrays (no tensors yet): the
+/// per-cloud half of a [`Structure`], cheap to build on any thread and to combine with others.
+#[derive(Debug, Clone)]
+pub(crate) struct Layout {
+    /// Per level, finest first: positions (points, then cluster means), m.
+    pos: Vec<Vec<Vec3>>,
+    /// Per level: the point order along each curve.
+    orders: Vec<[Vec<u32>; CURVES]>,
+    /// Per pooling (level `k` to `k + 1`): cluster of each point and members per cluster.
+    pools: Vec<(Vec<u32>, Vec<u32>)>,
+}
+
+impl Layout {
+    /// Serializes `pos` (centred, m) on `stages` levels: level 0 on a grid of `grid_m`, level
+    /// `k ≥ 1` the cells of `pool_grid_m · 2^(k−1)`.
+    pub fn new(pos: &[Vec3], stages: usize, grid_m: f32, pool_grid_m: f32) -> Self {
+        let mut out = Layout {
+            pos: Vec::with_capacity(stages),
+            orders: Vec::with_capacity(stages),
+            pools: Vec::with_capacity(stages.saturating_sub(1)),
+        };
+        let mut current = pos.to_vec();
+        for s in 0..stages {
+            let grid = if s == 0 {
+                grid_m
+            } else {
+                pool_grid_m * (1 << (s - 1)) as f32
+            };
+            out.orders.push(curve_orders(&current, grid));
+            let next = if s + 1 < stages {
+                let (cluster, mean, count) = grid_clusters(&current, pool_grid_m * (1 << s) as f32);
+                out.pools.push((cluster, count));
+                Some(mean)
+            } else {
+                None
+            };
+            out.pos
+                .push(std::mem::replace(&mut current, next.unwrap_or_default()));
+        }
+        out
+    }
+}
+
 /// All index structures one forward pass needs.
 #[derive(Debug)]
 pub(crate) struct Structure {
@@ -241,31 +326,64 @@ impl Structure {
         patch: usize,
         dev: &Device,
     ) -> Result<Self> {
+        Self::batch(&[Layout::new(pos, stages, grid_m, pool_grid_m)], patch, dev)
+    }
+
+    /// The structure of several clouds processed as one: their points are concatenated (cloud
+    /// `b`'s points follow cloud `b − 1`'s at every level), each keeps its own serializations,
+    /// patches (see [`Order`]) and pooling clusters, so no operation of the encoder mixes two
+    /// clouds. One cloud gives exactly [`Structure::new`].
+    pub fn batch(clouds: &[Layout], patch: usize, dev: &Device) -> Result<Self> {
+        let stages = clouds.first().map_or(0, |c| c.pos.len());
+        if clouds.iter().any(|c| c.pos.len() != stages) {
+            return Err(ResidualError::Input(
+                "clouds serialized on different numbers of levels".into(),
+            ));
+        }
         let mut levels = Vec::with_capacity(stages);
         let mut pools = Vec::with_capacity(stages.saturating_sub(1));
-        let mut current = pos.to_vec();
         for s in 0..stages {
-            let grid = if s == 0 {
-                grid_m
-            } else {
-                pool_grid_m * (1 << (s - 1)) as f32
-            };
+            // Index of each cloud's first point at this level.
+            let offsets: Vec<u32> = clouds
+                .iter()
+                .scan(0u32, |acc, c| {
+                    let first = *acc;
+                    *acc += c.pos[s].len() as u32;
+                    Some(first)
+                })
+                .collect();
             let orders = (0..CURVES)
-                .map(|c| Order::new(&curve_order(&current, grid, c), patch, dev))
+                .map(|curve| {
+                    let parts: Vec<(&[u32], u32)> = clouds
+                        .iter()
+                        .zip(&offsets)
+                        .map(|(c, &off)| (c.orders[s][curve].as_slice(), off))
+                        .collect();
+                    Order::new(&parts, patch, dev)
+                })
                 .collect::<Result<Vec<_>>>()?;
-            let flat: Vec<f32> = current.iter().flat_map(|p| p.to_array()).collect();
-            let pos = Tensor::from_vec(flat, (current.len(), 3), dev)?;
+            let flat: Vec<f32> = clouds
+                .iter()
+                .flat_map(|c| c.pos[s].iter().flat_map(|p| p.to_array()))
+                .collect();
+            let n = flat.len() / 3;
+            let pos = Tensor::from_vec(flat, (n, 3), dev)?;
             levels.push(Level { orders, pos });
             if s + 1 < stages {
-                let g = pool_grid_m * (1 << s) as f32;
-                let (cluster, mean, count) = grid_clusters(&current, g);
-                let inv: Vec<f32> = count.iter().map(|c| 1.0 / *c as f32).collect();
+                let (mut cluster, mut inv) = (Vec::with_capacity(n), Vec::new());
+                let mut first = 0u32;
+                for c in clouds {
+                    let (ids, count) = &c.pools[s];
+                    cluster.extend(ids.iter().map(|i| first + i));
+                    inv.extend(count.iter().map(|c| 1.0 / *c as f32));
+                    first += count.len() as u32;
+                }
+                let clusters = inv.len();
                 pools.push(Pooling {
                     cluster: u32_tensor(&cluster, dev)?,
-                    inv_count: Tensor::from_vec(inv, (mean.len(), 1), dev)?,
-                    clusters: mean.len(),
+                    inv_count: Tensor::from_vec(inv, (clusters, 1), dev)?,
+                    clusters,
                 });
-                current = mean;
             }
         }
         Ok(Structure { levels, pools })

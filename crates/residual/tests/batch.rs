@@ -1,0 +1,168 @@
+//! `predict_batch` (one network call per step for many rollouts) predicts what `predict` does
+//! for each rollout alone, and a failing rollout fails alone.
+
+mod common;
+
+use glam::Vec3;
+use residual::{History, ModelConfig, PredictJob, ResidualNet, predict, predict_batch};
+use springs::{Actions, Backbone, State};
+
+/// `actions` with every gripper moved by `k · step` at frame `k` (another candidate path).
+fn shifted(actions: &Actions, step: Vec3) -> Actions {
+    let (mut pos, mut closed) = (Vec::new(), Vec::new());
+    for t in 0..actions.num_frames() {
+        let f = actions.frame(t).unwrap();
+        pos.push(f.positions.iter().map(|p| *p + step * t as f32).collect());
+        closed.push(f.closed.to_vec());
+    }
+    Actions::new(pos, closed).unwrap()
+}
+
+struct Case {
+    backbone: Backbone,
+    init: State,
+    history: History,
+    actions: Actions,
+}
+
+impl Case {
+    fn job(&self, steps: usize) -> PredictJob<'_> {
+        PredictJob {
+            backbone: &self.backbone,
+            init: &self.init,
+            history: &self.history,
+            actions: &self.actions,
+            steps,
+        }
+    }
+}
+
+/// A straight chain of `n` particles 6 mm apart, its first particle held by a gripper that
+/// moves by `step` per frame.
+fn chain(n: usize, step: Vec3) -> Case {
+    let x: Vec<Vec3> = (0..n)
+        .map(|i| Vec3::new(0.006 * i as f32, 0.01 * (i as f32 * 0.3).sin(), 0.02))
+        .collect();
+    let held: Vec<i32> = (0..n).map(|i| if i < 3 { 0 } else { -1 }).collect();
+    let params = springs::SpringParams {
+        threshold: 0.02,
+        ..springs::SpringParams::reference_rope()
+    };
+    let backbone = Backbone::new(&x, &held, params, springs::SimConfig::default()).unwrap();
+    let frames = 8;
+    let actions = Actions::new(
+        (0..frames).map(|t| vec![x[0] + step * t as f32]).collect(),
+        vec![vec![true]; frames],
+    )
+    .unwrap();
+    let init = State::at_rest(x);
+    Case {
+        history: History::extrapolated(&init, backbone.config().step_dt),
+        init,
+        backbone,
+        actions,
+    }
+}
+
+fn case(name: &str, episode: usize, shift: Vec3) -> Case {
+    let (_, _, scene, history, backbone) = common::scene(name, episode);
+    Case {
+        actions: shifted(&scene.actions, shift),
+        init: scene.init,
+        history,
+        backbone,
+    }
+}
+
+/// Largest distance between corresponding points of two rollouts, m.
+fn worst(a: &[Vec<Vec3>], b: &[Vec<Vec3>]) -> f32 {
+    assert_eq!(a.len(), b.len());
+    a.iter()
+        .zip(b)
+        .flat_map(|(p, q)| {
+            assert_eq!(p.len(), q.len());
+            p.iter().zip(q).map(|(p, q)| (*p - *q).length())
+        })
+        .fold(0.0, f32::max)
+}
+
+/// Compares every job of a batch with its own `predict`. The residual moves points by
+/// millimetres per step (checked against the backbone alone, so the comparison can fail);
+/// batched and single predictions must agree to float rounding (1 µm).
+fn assert_batch_matches(net: &ResidualNet, cases: &[&Case], steps: &[usize]) {
+    let jobs: Vec<PredictJob<'_>> = cases.iter().zip(steps).map(|(c, &s)| c.job(s)).collect();
+    let batch = predict_batch(net, &jobs).unwrap();
+    assert_eq!(batch.len(), jobs.len());
+    for ((c, &s), b) in cases.iter().zip(steps).zip(batch) {
+        let b = b.unwrap();
+        let single = predict(net, &c.backbone, &c.init, &c.history, &c.actions, s).unwrap();
+        let physics = c.backbone.rollout(&c.init, &c.actions).unwrap().positions;
+        let residual = worst(&single, &physics[1..=s]);
+        assert!(
+            residual > 1e-4,
+            "the network moves points by only {residual} m"
+        );
+        let diff = worst(&b, &single);
+        assert!(
+            diff <= 1e-6,
+            "batched and single predictions differ by {diff} m (residual effect {residual} m)"
+        );
+    }
+}
+
+#[test]
+fn a_batch_predicts_what_each_rollout_predicts_alone() {
+    let a = case("rope", 0, Vec3::ZERO);
+    let b = case("rope", 1, Vec3::new(0.003, -0.002, 0.001));
+    let c = chain(97, Vec3::new(0.0, 0.01, 0.02));
+    assert_ne!(a.init.x.len(), c.init.x.len(), "point counts should differ");
+    for cfg in [ModelConfig::tiny(), ModelConfig::default()] {
+        let net = ResidualNet::new(&cfg, 4).unwrap();
+        assert_batch_matches(&net, &[&a], &[5]);
+        // Different clouds, point counts, actions and lengths (the short one leaves early).
+        assert_batch_matches(&net, &[&a, &b, &c], &[5, 3, 5]);
+        // More particles than one group holds: several groups, evaluated in parallel.
+        assert_batch_matches(&net, &[&a, &b, &c, &a, &b], &[5, 3, 5, 2, 4]);
+    }
+}
+
+#[test]
+fn a_failing_rollout_fails_alone() {
+    let a = case("rope", 0, Vec3::ZERO);
+    let net = ResidualNet::new(&ModelConfig::tiny(), 4).unwrap();
+    let mut short = a.history.clone();
+    short.x[1].pop();
+    let mut nan = a.init.clone();
+    nan.x[7] = Vec3::NAN;
+    let jobs = [
+        a.job(4),
+        PredictJob {
+            history: &short,
+            ..a.job(4)
+        },
+        a.job(1000),
+        PredictJob {
+            init: &nan,
+            ..a.job(4)
+        },
+        a.job(0),
+        a.job(2),
+    ];
+    let out = predict_batch(&net, &jobs).unwrap();
+    assert_eq!(out.len(), jobs.len());
+    let single = predict(&net, &a.backbone, &a.init, &a.history, &a.actions, 4).unwrap();
+    let ok = out[0].as_ref().unwrap();
+    assert!(worst(ok, &single) <= 1e-6);
+    let msg = |k: usize| out[k].as_ref().unwrap_err().to_string();
+    assert!(msg(1).contains("history"), "{}", msg(1));
+    assert!(msg(2).contains("action frames"), "{}", msg(2));
+    assert!(
+        msg(3).contains("backbone") || msg(3).contains("diverged"),
+        "{}",
+        msg(3)
+    );
+    assert!(out[4].as_ref().unwrap().is_empty());
+    assert!(worst(out[5].as_ref().unwrap(), &single[..2]) <= 1e-6);
+    // Nothing to run is not an error.
+    assert!(predict_batch(&net, &[]).unwrap().is_empty());
+}
