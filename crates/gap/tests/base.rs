@@ -4,20 +4,10 @@
 
 use fit::{Family, FitConfig};
 use gap::{BaseEffect, Candidate, CandidateFamily, DiagnoseConfig};
-use scene::{Protocol, Scene, SceneConfig};
+use scene::Scene;
 
-fn scenes(split: dataset::Split) -> Vec<Scene> {
-    let root = concat!(env!("CARGO_MANIFEST_DIR"), "/../../fixtures/rope");
-    let data = dataset::Dataset::open(root).unwrap();
-    data.split_indices(split)
-        .into_iter()
-        .map(|i| {
-            let ep = data.load_episode(i).unwrap();
-            let w = Protocol::Paper.window(ep.frames()).unwrap();
-            Scene::new(&data.meta, &ep, w, &SceneConfig::default()).unwrap()
-        })
-        .collect()
-}
+mod common;
+use common::scenes;
 
 fn backbone() -> springs::SpringParams {
     springs::SpringParams {

@@ -1,0 +1,17 @@
+//! Shared by the integration tests: the rope fixture's scenes of one split.
+
+use scene::{Protocol, Scene, SceneConfig};
+
+/// The rope fixture's episodes of `split` as paper-protocol scenes.
+pub fn scenes(split: dataset::Split) -> Vec<Scene> {
+    let root = concat!(env!("CARGO_MANIFEST_DIR"), "/../../fixtures/rope");
+    let data = dataset::Dataset::open(root).unwrap();
+    data.split_indices(split)
+        .into_iter()
+        .map(|i| {
+            let ep = data.load_episode(i).unwrap();
+            let w = Protocol::Paper.window(ep.frames()).unwrap();
+            Scene::new(&data.meta, &ep, w, &SceneConfig::default()).unwrap()
+        })
+        .collect()
+}
