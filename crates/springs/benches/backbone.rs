@@ -193,6 +193,87 @@ fn bench(c: &mut Criterion) {
             total
         })
     });
+    // The same step with the spectral substep (Lanczos estimate instead of Gershgorin's bound).
+    let (rope_sp, _) = rope_backbone(SimConfig {
+        substep: Substep::SPECTRAL,
+        ..SimConfig::default()
+    });
+    eprintln!(
+        "rope, spectral substep: {:.3e} s ({} per 0.1 s)",
+        rope_sp.substep_dt(),
+        rope_sp.substeps()
+    );
+    c.bench_function("rope_1000p/step_0.1s_spectral", |b| {
+        let mut sc = rope_sp.scratch();
+        b.iter_batched_ref(
+            || rope0.clone(),
+            |st| rope_sp.step(st, f0, f1, &mut sc).expect("step"),
+            criterion::BatchSize::SmallInput,
+        )
+    });
+    c.bench_function("rope_1000p/step_0.1s_spectral_cpu_time", |b| {
+        let mut sc = rope_sp.scratch();
+        b.iter_custom(|iters| {
+            let mut total = Duration::ZERO;
+            for _ in 0..iters {
+                let mut st = rope0.clone();
+                total += cpu_iters(1, 1, || {
+                    rope_sp.step(&mut st, f0, f1, &mut sc).expect("step")
+                });
+            }
+            total
+        })
+    });
+    // One rollout split into 2 slabs (`SimConfig::partitions`): both cores work on one step.
+    // Wall time only (thread CPU time would count one of the two threads).
+    for (name, substep) in [("auto", Substep::AUTO), ("spectral", Substep::SPECTRAL)] {
+        let (bb, _) = rope_backbone(SimConfig {
+            substep,
+            partitions: 2,
+            ..SimConfig::default()
+        });
+        c.bench_function(
+            &format!(
+                "rope_1000p/step_0.1s_{name}_2_slabs_threads_{}",
+                rayon::current_num_threads()
+            ),
+            |b| {
+                let mut sc = bb.scratch();
+                b.iter_batched_ref(
+                    || rope0.clone(),
+                    |st| bb.step(st, f0, f1, &mut sc).expect("step"),
+                    criterion::BatchSize::SmallInput,
+                )
+            },
+        );
+    }
+    c.bench_function("rope_1000p/build_spectral", |b| {
+        let x = common::rope(1000, 1.0, 0.005, 0.006);
+        b.iter(|| {
+            Backbone::new(
+                &x,
+                &[],
+                SpringParams::reference_rope(),
+                SimConfig {
+                    substep: Substep::SPECTRAL,
+                    ..SimConfig::default()
+                },
+            )
+            .expect("rope")
+        })
+    });
+    c.bench_function("rope_1000p/build_auto", |b| {
+        let x = common::rope(1000, 1.0, 0.005, 0.006);
+        b.iter(|| {
+            Backbone::new(
+                &x,
+                &[],
+                SpringParams::reference_rope(),
+                SimConfig::default(),
+            )
+            .expect("rope")
+        })
+    });
     let (rope_ref, _) = rope_backbone(SimConfig {
         substep: Substep::Fixed { dt: 2e-5 },
         ..SimConfig::default()

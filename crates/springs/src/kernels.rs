@@ -168,11 +168,23 @@ fn sqrt4(v: Vec4) -> Vec4 {
 /// product is a symmetric contraction of the velocities (docs/physics.md).
 /// `v.len()` must be a power of two.
 pub(crate) fn damping_sweeps(springs: &[DampSpring], dir: &[Vec3A], v: &mut [Vec3A]) {
+    damping_forward(springs, dir, v);
+    damping_backward(springs, dir, v);
+}
+
+/// The forward half of [`damping_sweeps`].
+pub(crate) fn damping_forward(springs: &[DampSpring], dir: &[Vec3A], v: &mut [Vec3A]) {
     let mask = v.len() - 1;
     let v = &mut v[..=mask];
     for (s, &u) in springs.iter().zip(dir) {
         pair_impulse(s, u, mask, v);
     }
+}
+
+/// The backward half of [`damping_sweeps`].
+pub(crate) fn damping_backward(springs: &[DampSpring], dir: &[Vec3A], v: &mut [Vec3A]) {
+    let mask = v.len() - 1;
+    let v = &mut v[..=mask];
     for (s, &u) in springs.iter().zip(dir).rev() {
         pair_impulse(s, u, mask, v);
     }

@@ -35,6 +35,8 @@ mod fill;
 mod kernels;
 mod obstacles;
 mod params;
+mod partition;
+mod spectral;
 mod step;
 mod topology;
 

@@ -7,6 +7,7 @@ use rayon::prelude::*;
 
 use crate::effects::{GroundContact, SubstepContext};
 use crate::params::{DIVERGENCE_LIMIT, GROUND_STIFFNESS};
+use crate::partition::{Partition, SlabBuffers};
 use crate::{ActionFrame, Actions, Backbone, Manipulation, Rollout, SimError, State, kernels};
 
 /// Reusable working memory of one rollout: internal state, per-spring buffers, the rollout's
@@ -33,6 +34,8 @@ pub struct Scratch {
     g_now: Vec<Vec3>,
     g_closed: Vec<bool>,
     effect_states: Vec<Box<dyn Any + Send>>,
+    /// Private copies of each slab's particles and springs when the rollout is split.
+    slabs: Vec<SlabBuffers>,
     steps: usize,
 }
 
@@ -130,6 +133,10 @@ impl Backbone {
             g_now: Vec::new(),
             g_closed: Vec::new(),
             effect_states: self.effects.iter().map(|e| e.new_state(self)).collect(),
+            slabs: self
+                .partition
+                .as_ref()
+                .map_or_else(Vec::new, |p| p.buffers(self.has_damping)),
             steps: 0,
         }
     }
@@ -292,25 +299,17 @@ impl Backbone {
         for s in 0..n_sub {
             let frac0 = s as f32 / n_sub as f32;
             let frac1 = (s + 1) as f32 / n_sub as f32;
-            if self.explicit_damping {
-                kernels::elastic_explicit_dashpot(
+            match &self.partition {
+                None => self.elastic_pass(
+                    0,
                     &self.springs,
-                    &self.stiffness,
-                    &self.damping,
-                    &sc.rest,
-                    &sc.x,
+                    sc.x.as_slice(),
                     &sc.v,
-                    &mut sc.f,
-                );
-            } else {
-                kernels::elastic(
-                    &self.springs,
-                    &self.stiffness,
                     &sc.rest,
-                    &sc.x,
                     &mut sc.f,
                     &mut sc.dir,
-                );
+                ),
+                Some(p) => self.split_elastic_pass(p, sc),
             }
             if !self.effects.is_empty() {
                 lerp_grippers(&sc.g_from, &sc.g_to, frac0, &mut sc.g_now);
@@ -342,7 +341,10 @@ impl Backbone {
                 sc.v[i as usize] = sc.g_vel[g as usize].into();
             }
             if self.has_damping {
-                kernels::damping_sweeps(&sc.damp, &sc.dir, &mut sc.v);
+                match &self.partition {
+                    None => kernels::damping_sweeps(&sc.damp, &sc.dir, &mut sc.v),
+                    Some(p) => split_damping_sweeps(p, sc),
+                }
             }
             if let Some(h) = self.config.ground_z {
                 self.ground_velocity(h, sc);
@@ -486,17 +488,145 @@ impl Backbone {
         if same {
             return;
         }
-        for ((d, &[a, b]), &w) in sc.damp.iter_mut().zip(&self.springs).zip(&self.damp_weight) {
-            *d = kernels::DampSpring {
-                a,
-                b,
-                wa: w * sc.inv_m_eff[a as usize],
-                wb: w * sc.inv_m_eff[b as usize],
-            };
+        let im = &sc.inv_m_eff;
+        let damp_spring = |[a, b]: [u32; 2], [la, lb]: [u32; 2], w: f32| kernels::DampSpring {
+            a: la,
+            b: lb,
+            wa: w * im[a as usize],
+            wb: w * im[b as usize],
+        };
+        let start = match &self.partition {
+            None => 0,
+            Some(p) => {
+                for (buf, r) in sc.slabs.iter_mut().zip(&p.ranges) {
+                    for (j, d) in buf.damp.iter_mut().enumerate() {
+                        let s = r.start + j;
+                        *d = damp_spring(self.springs[s], p.local_springs[s], self.damp_weight[s]);
+                    }
+                }
+                p.cross_start
+            }
+        };
+        for s in start..self.springs.len() {
+            sc.damp[s] = damp_spring(self.springs[s], self.springs[s], self.damp_weight[s]);
         }
         let ids = sc.damp_kin.get_or_insert_with(Vec::new);
         ids.clear();
         ids.extend(sc.kin.iter().map(|k| k.0));
+    }
+}
+
+impl Backbone {
+    /// Elastic forces (and the explicit dashpot, when chosen) of `springs`, which are the
+    /// backbone's springs from index `first` on, with endpoints indexing `x`, `v` and `f`.
+    #[allow(clippy::too_many_arguments)]
+    fn elastic_pass(
+        &self,
+        first: usize,
+        springs: &[[u32; 2]],
+        x: &[Vec3A],
+        v: &[Vec3A],
+        rest: &[f32],
+        f: &mut [Vec3A],
+        dir: &mut [Vec3A],
+    ) {
+        let r = first..first + springs.len();
+        if self.explicit_damping {
+            kernels::elastic_explicit_dashpot(
+                springs,
+                &self.stiffness[r.clone()],
+                &self.damping[r.clone()],
+                &rest[r],
+                x,
+                v,
+                f,
+            );
+        } else {
+            kernels::elastic(springs, &self.stiffness[r.clone()], &rest[r], x, f, dir);
+        }
+    }
+
+    /// The elastic pass of a split rollout: every slab on a private copy of its particles in
+    /// parallel, their forces added to the shared array slab by slab, then the cross springs.
+    fn split_elastic_pass(&self, p: &Partition, sc: &mut Scratch) {
+        let (x, v, rest) = (&sc.x, &sc.v, &sc.rest);
+        sc.slabs
+            .par_iter_mut()
+            .zip(p.members.par_iter().zip(p.ranges.par_iter()))
+            .for_each(|(buf, (members, r))| {
+                for (j, &g) in members.iter().enumerate() {
+                    buf.x[j] = x[g as usize];
+                    buf.f[j] = Vec3A::ZERO;
+                }
+                if self.explicit_damping {
+                    for (j, &g) in members.iter().enumerate() {
+                        buf.v[j] = v[g as usize];
+                    }
+                }
+                let springs = &p.local_springs[r.clone()];
+                self.elastic_pass(
+                    r.start,
+                    springs,
+                    &buf.x,
+                    &buf.v,
+                    rest,
+                    &mut buf.f,
+                    &mut buf.dir,
+                );
+            });
+        for (buf, members) in sc.slabs.iter().zip(&p.members) {
+            for (j, &g) in members.iter().enumerate() {
+                sc.f[g as usize] += buf.f[j];
+            }
+        }
+        let c = p.cross_start;
+        self.elastic_pass(
+            c,
+            &self.springs[c..],
+            &sc.x,
+            &sc.v,
+            &sc.rest,
+            &mut sc.f,
+            &mut sc.dir[c..],
+        );
+    }
+}
+
+/// The dashpot sweeps of a split rollout, in the palindromic order `slabs, cross, cross
+/// reversed, slabs reversed` (slabs commute: they share no particle), so the pair of sweeps is
+/// still a symmetric contraction (docs/physics.md).
+fn split_damping_sweeps(p: &Partition, sc: &mut Scratch) {
+    let v = &sc.v;
+    sc.slabs
+        .par_iter_mut()
+        .zip(p.members.par_iter())
+        .for_each(|(buf, members)| {
+            for (j, &g) in members.iter().enumerate() {
+                buf.v[j] = v[g as usize];
+            }
+            kernels::damping_forward(&buf.damp, &buf.dir, &mut buf.v);
+        });
+    scatter_velocities(p, sc);
+    let c = p.cross_start;
+    kernels::damping_sweeps(&sc.damp[c..], &sc.dir[c..], &mut sc.v);
+    let v = &sc.v;
+    sc.slabs
+        .par_iter_mut()
+        .zip(p.members.par_iter())
+        .for_each(|(buf, members)| {
+            for (j, &g) in members.iter().enumerate() {
+                buf.v[j] = v[g as usize];
+            }
+            kernels::damping_backward(&buf.damp, &buf.dir, &mut buf.v);
+        });
+    scatter_velocities(p, sc);
+}
+
+fn scatter_velocities(p: &Partition, sc: &mut Scratch) {
+    for (buf, members) in sc.slabs.iter().zip(&p.members) {
+        for (j, &g) in members.iter().enumerate() {
+            sc.v[g as usize] = buf.v[j];
+        }
     }
 }
 

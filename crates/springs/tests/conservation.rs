@@ -57,9 +57,9 @@ proptest! {
 
     #[test]
     fn momentum_is_conserved(seed in any::<u64>(), n in 2usize..60, k in 10f32..5e4, c in 0f32..1000.0,
-                             explicit in any::<bool>()) {
+                             explicit in any::<bool>(), partitions in 1u32..4) {
         let (x0, init) = scene(seed, n, 0.003, 0.5);
-        let cfg = SimConfig { dashpot: dashpot(explicit), ..free_config() };
+        let cfg = SimConfig { dashpot: dashpot(explicit), partitions, ..free_config() };
         let bb = Backbone::new(&x0, &[], params(k, c), cfg).unwrap();
         let out = bb.rollout(&init, &Actions::without_grippers(6)).unwrap();
         let p0 = momentum(&init.v);
@@ -76,11 +76,12 @@ proptest! {
     /// measured was 4e-5).
     #[test]
     fn energy_does_not_increase(seed in any::<u64>(), n in 2usize..60, k in 10f32..5e4, c in 1f32..1000.0,
-                                safety in 0.3f32..1.0, explicit in any::<bool>()) {
+                                safety in 0.3f32..1.0, explicit in any::<bool>(), partitions in 1u32..4) {
         let (x0, init) = scene(seed, n, 0.003, 0.05);
         let cfg = SimConfig {
             substep: Substep::Auto { safety, max_dt: 2e-3 },
             dashpot: dashpot(explicit),
+            partitions,
             ..free_config()
         };
         let bb = Backbone::new(&x0, &[], params(k, c), cfg).unwrap();

@@ -1,0 +1,212 @@
+//! The spectral substep: its eigenvalue estimate against a dense eigensolver, its relation to
+//! Gershgorin's bound, and stability of rollouts that use it.
+
+mod common;
+
+use glam::Vec3;
+use proptest::prelude::*;
+use springs::{
+    Actions, Backbone, Manipulation, PAPER_BOUNDS, REFERENCE_BOUNDS, SimConfig, SpringParams,
+    State, Substep,
+};
+
+/// Largest eigenvalue of `M^-1/2 K M^-1/2` assembled densely from the backbone's springs at `x`
+/// (tension part of stretched springs included, of compressed ones left out, as documented),
+/// by cyclic Jacobi rotations: an independent check of the Lanczos estimate.
+fn dense_largest_eigenvalue(bb: &Backbone, x: &[Vec3]) -> f64 {
+    let n = x.len();
+    let dim = 3 * n;
+    let mut a = vec![0.0f64; dim * dim];
+    let s: Vec<f64> = bb
+        .masses()
+        .iter()
+        .map(|&m| 1.0 / f64::from(m).sqrt())
+        .collect();
+    for (i, &[p, q]) in bb.springs().iter().enumerate() {
+        let (p, q) = (p as usize, q as usize);
+        let d = (x[q] - x[p]).as_dvec3();
+        let l = d.length();
+        let k = f64::from(bb.stiffness()[i]);
+        let l0 = f64::from(bb.rest_lengths()[i]);
+        let (u, t) = if l > 0.0 {
+            (d / l, (1.0 - l0 / l).max(0.0))
+        } else {
+            (glam::DVec3::ZERO, 1.0)
+        };
+        let u = u.to_array();
+        for r in 0..3 {
+            for c in 0..3 {
+                let id = if r == c { 1.0 } else { 0.0 };
+                let h = k * (u[r] * u[c] + t * (id - u[r] * u[c]));
+                for (i1, s1, sign1) in [(p, s[p], -1.0), (q, s[q], 1.0)] {
+                    for (i2, s2, sign2) in [(p, s[p], -1.0), (q, s[q], 1.0)] {
+                        a[(3 * i1 + r) * dim + 3 * i2 + c] += sign1 * sign2 * h * s1 * s2;
+                    }
+                }
+            }
+        }
+    }
+    for _sweep in 0..60 {
+        let mut off = 0.0;
+        for p in 0..dim {
+            for q in p + 1..dim {
+                off += a[p * dim + q] * a[p * dim + q];
+            }
+        }
+        if off < 1e-22 {
+            break;
+        }
+        for p in 0..dim {
+            for q in p + 1..dim {
+                let apq = a[p * dim + q];
+                if apq.abs() < 1e-300 {
+                    continue;
+                }
+                let theta = (a[q * dim + q] - a[p * dim + p]) / (2.0 * apq);
+                let t = theta.signum() / (theta.abs() + (theta * theta + 1.0).sqrt());
+                let t = if theta == 0.0 { 1.0 } else { t };
+                let c = 1.0 / (t * t + 1.0).sqrt();
+                let sn = t * c;
+                for k in 0..dim {
+                    let (akp, akq) = (a[k * dim + p], a[k * dim + q]);
+                    a[k * dim + p] = c * akp - sn * akq;
+                    a[k * dim + q] = sn * akp + c * akq;
+                }
+                for k in 0..dim {
+                    let (apk, aqk) = (a[p * dim + k], a[q * dim + k]);
+                    a[p * dim + k] = c * apk - sn * aqk;
+                    a[q * dim + k] = sn * apk + c * aqk;
+                }
+            }
+        }
+    }
+    (0..dim)
+        .map(|i| a[i * dim + i])
+        .fold(f64::NEG_INFINITY, f64::max)
+}
+
+fn free() -> SimConfig {
+    SimConfig {
+        ground_z: None,
+        gravity: Vec3::ZERO,
+        ..SimConfig::default()
+    }
+}
+
+#[test]
+fn estimate_matches_a_dense_eigensolver() {
+    let mut rng = common::Rng::new(3);
+    let scenes: Vec<(Vec<Vec3>, f32)> = vec![
+        (common::lattice(4, 4, 3, 0.01, Vec3::ZERO), 0.0175),
+        (common::rope(50, 0.3, 0.004, 0.0), 0.03),
+        (common::blob(&mut rng, 45, 0.02, Vec3::ZERO), 0.015),
+    ];
+    for (x, threshold) in scenes {
+        let params = SpringParams {
+            threshold,
+            ..SpringParams::reference_rope()
+        };
+        let masses: Vec<f32> = (0..x.len()).map(|_| rng.range(0.5, 2.0)).collect();
+        let bb = Backbone::with_options(
+            &x,
+            &[],
+            params,
+            free(),
+            springs::BackboneOptions {
+                masses: Some(masses),
+                effects: Vec::new(),
+            },
+        )
+        .unwrap();
+        // At rest and in a randomly deformed state (stretched and compressed springs).
+        let mut deformed = x.clone();
+        deformed.iter_mut().for_each(|p| *p += rng.vec3(0.003));
+        for pos in [&x, &deformed] {
+            let want = dense_largest_eigenvalue(&bb, pos);
+            let got = bb.stiffness_eigenvalue(pos).unwrap();
+            assert!(
+                (got - want).abs() <= 1e-3 * want,
+                "{} particles: Lanczos {got:.6e} vs dense {want:.6e}",
+                x.len()
+            );
+        }
+        // Gershgorin's bound (what `Substep::Auto` uses) is never below the eigenvalue.
+        let gershgorin = 4.0 / f64::from(bb.stable_dt()).powi(2);
+        assert!(gershgorin >= bb.stiffness_eigenvalue(&x).unwrap() * (1.0 - 1e-6));
+    }
+}
+
+#[test]
+fn spectral_substep_is_longer_than_gershgorins_and_respects_the_cap() {
+    let x = common::rope(300, 0.3, 0.004, 0.01);
+    let auto = Backbone::new(
+        &x,
+        &[],
+        SpringParams::reference_rope(),
+        SimConfig::default(),
+    )
+    .unwrap();
+    let cfg = SimConfig {
+        substep: Substep::SPECTRAL,
+        ..SimConfig::default()
+    };
+    let spectral = Backbone::new(&x, &[], SpringParams::reference_rope(), cfg).unwrap();
+    assert!(spectral.stable_dt() > 1.2 * auto.stable_dt());
+    assert!(spectral.substeps() < auto.substeps());
+    assert!(spectral.substep_dt() <= 0.9 * spectral.stable_dt() && spectral.substep_dt() <= 2e-3);
+    // The bound is the springs' eigenvalue plus the ground's stiffness per unit mass (1 kg).
+    let lambda = spectral.stiffness_eigenvalue(&x).unwrap() + f64::from(springs::GROUND_STIFFNESS);
+    let want = 2.0 / lambda.sqrt();
+    assert!((f64::from(spectral.stable_dt()) - want).abs() < 1e-6 * want);
+    let bad = Backbone::new(
+        &x,
+        &[],
+        SpringParams::reference_rope(),
+        SimConfig {
+            substep: Substep::Spectral {
+                safety: 1.5,
+                max_dt: 2e-3,
+            },
+            ..SimConfig::default()
+        },
+    );
+    assert!(bad.is_err());
+    assert!(spectral.stiffness_eigenvalue(&x[..10]).is_err());
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(48))]
+
+    /// The robustness property of `tests/robustness.rs` with the spectral substep: any parameters
+    /// inside the reference CMA-ES box (or the wider "paper" box), a random object dropped,
+    /// grasped and dragged or pushed quickly: finite states, no divergence.
+    #[test]
+    fn spectral_substep_is_stable_within_bounds(seed in any::<u64>(),
+                                                u in prop::array::uniform5(0f64..=1.0),
+                                                n in 5usize..60,
+                                                vel in prop::array::uniform3(-0.5f32..0.5),
+                                                push in any::<bool>(),
+                                                paper in prop::bool::weighted(0.25)) {
+        let params = if paper { PAPER_BOUNDS } else { REFERENCE_BOUNDS }.denormalize(u);
+        let mut rng = common::Rng::new(seed);
+        let x0 = common::blob(&mut rng, n, 0.02, Vec3::new(0.0, 0.0, 0.025));
+        let grip = x0[0];
+        let held: Vec<i32> = x0.iter().map(|p| if p.distance(grip) < 0.012 { 0 } else { -1 }).collect();
+        let cfg = SimConfig {
+            manipulation: if push { Manipulation::Push } else { Manipulation::Grasp },
+            gripper_radius: 0.015,
+            substep: Substep::SPECTRAL,
+            ..SimConfig::default()
+        };
+        let bb = Backbone::new(&x0, &held, params, cfg).unwrap();
+        let pos = (0..7).map(|t| vec![grip + Vec3::from(vel) * (0.1 * t as f32)]).collect();
+        let closed = (0..7).map(|t| vec![t < 4]).collect();
+        let actions = Actions::new(pos, closed).unwrap();
+        let out = bb.rollout(&State::at_rest(x0.clone()), &actions);
+        prop_assert!(out.is_ok(), "{:?} with {:?}", out.err(), params);
+        let out = out.unwrap();
+        for (x, v) in out.positions.iter().zip(&out.velocities) {
+            prop_assert!(x.iter().chain(v).all(|p| p.is_finite()));
+        }
+    }
+}
