@@ -37,6 +37,7 @@ mod obstacles;
 mod params;
 mod partition;
 mod spectral;
+mod split;
 mod step;
 mod topology;
 

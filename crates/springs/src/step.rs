@@ -7,7 +7,8 @@ use rayon::prelude::*;
 
 use crate::effects::{GroundContact, SubstepContext};
 use crate::params::{DIVERGENCE_LIMIT, GROUND_STIFFNESS};
-use crate::partition::{Partition, SlabBuffers};
+use crate::partition::SlabBuffers;
+use crate::split::{self, Crew};
 use crate::{ActionFrame, Actions, Backbone, Manipulation, Rollout, SimError, State, kernels};
 
 /// Reusable working memory of one rollout: internal state, per-spring buffers, the rollout's
@@ -16,14 +17,14 @@ use crate::{ActionFrame, Actions, Backbone, Manipulation, Rollout, SimError, Sta
 pub struct Scratch {
     /// Number of particles; the particle arrays below are padded to a power of two.
     n: usize,
-    x: Vec<Vec3A>,
-    v: Vec<Vec3A>,
-    f: Vec<Vec3A>,
-    dir: Vec<Vec3A>,
-    rest: Vec<f32>,
-    inv_m_eff: Vec<f32>,
+    pub(crate) x: Vec<Vec3A>,
+    pub(crate) v: Vec<Vec3A>,
+    pub(crate) f: Vec<Vec3A>,
+    pub(crate) dir: Vec<Vec3A>,
+    pub(crate) rest: Vec<f32>,
+    pub(crate) inv_m_eff: Vec<f32>,
     /// Dashpot sweep data for the current kinematic set (rebuilt when that set changes).
-    damp: Vec<kernels::DampSpring>,
+    pub(crate) damp: Vec<kernels::DampSpring>,
     /// Kinematic particle ids `damp` was built for (`None`: not built yet).
     damp_kin: Option<Vec<u32>>,
     /// Kinematic particles of the current step: (particle, gripper, position at step start).
@@ -35,7 +36,7 @@ pub struct Scratch {
     g_closed: Vec<bool>,
     effect_states: Vec<Box<dyn Any + Send>>,
     /// Private copies of each slab's particles and springs when the rollout is split.
-    slabs: Vec<SlabBuffers>,
+    pub(crate) slabs: Vec<SlabBuffers>,
     steps: usize,
 }
 
@@ -83,7 +84,7 @@ pub struct RolloutJob<'a> {
 /// ```
 pub fn rollout_batch(jobs: &[RolloutJob<'_>]) -> Vec<Result<Rollout, SimError>> {
     jobs.par_iter()
-        .map(|j| j.backbone.rollout(j.init, j.actions))
+        .map(|j| split::as_batch_job(|| j.backbone.rollout(j.init, j.actions)))
         .collect()
 }
 
@@ -205,7 +206,10 @@ impl Backbone {
             scratch.x[i] = state.x[i].into();
             scratch.v[i] = state.v[i].into();
         }
-        self.advance(scratch, from, to)?;
+        let threads = split::crew_size(self);
+        split::with_crew(self, threads, scratch, |sc, crew| {
+            self.advance(sc, from, to, crew)
+        })?;
         for i in 0..n {
             state.x[i] = scratch.x[i].into();
             state.v[i] = scratch.v[i].into();
@@ -238,17 +242,20 @@ impl Backbone {
         };
         out.positions.push(init.x.clone());
         out.velocities.push(init.v.clone());
-        for (from, to) in (0..frames)
-            .filter_map(|t| actions.frame(t))
-            .zip((1..frames).filter_map(|t| actions.frame(t)))
-        {
-            self.advance(&mut sc, from, to)?;
-            out.positions
-                .push(sc.x[..n].iter().map(|&p| p.into()).collect());
-            out.velocities
-                .push(sc.v[..n].iter().map(|&p| p.into()).collect());
-        }
-        Ok(out)
+        let threads = split::crew_size(self);
+        split::with_crew(self, threads, &mut sc, |sc, crew| {
+            for (from, to) in (0..frames)
+                .filter_map(|t| actions.frame(t))
+                .zip((1..frames).filter_map(|t| actions.frame(t)))
+            {
+                self.advance(sc, from, to, crew)?;
+                out.positions
+                    .push(sc.x[..n].iter().map(|&p| p.into()).collect());
+                out.velocities
+                    .push(sc.v[..n].iter().map(|&p| p.into()).collect());
+            }
+            Ok(out)
+        })
     }
 
     /// One model step on the scratch's internal state (inputs already validated).
@@ -257,6 +264,7 @@ impl Backbone {
         sc: &mut Scratch,
         from: ActionFrame<'_>,
         to: ActionFrame<'_>,
+        crew: Option<&Crew>,
     ) -> Result<(), SimError> {
         sc.g_from.clear();
         sc.g_from.extend_from_slice(from.positions);
@@ -291,7 +299,7 @@ impl Backbone {
             }
         }
         if self.has_damping {
-            self.update_damp_springs(sc);
+            self.update_damp_springs(sc, crew);
         }
         let n_sub = self.substeps;
         let dt = self.dt;
@@ -309,7 +317,7 @@ impl Backbone {
                     &mut sc.f,
                     &mut sc.dir,
                 ),
-                Some(p) => self.split_elastic_pass(p, sc),
+                Some(p) => split::elastic(self, p, sc, crew),
             }
             if !self.effects.is_empty() {
                 lerp_grippers(&sc.g_from, &sc.g_to, frac0, &mut sc.g_now);
@@ -343,7 +351,7 @@ impl Backbone {
             if self.has_damping {
                 match &self.partition {
                     None => kernels::damping_sweeps(&sc.damp, &sc.dir, &mut sc.v),
-                    Some(p) => split_damping_sweeps(p, sc),
+                    Some(p) => split::damping(self, p, sc, crew),
                 }
             }
             if let Some(h) = self.config.ground_z {
@@ -481,7 +489,7 @@ impl Backbone {
 impl Backbone {
     /// Rebuild the dashpot sweep data when the set of kinematic particles changed: a kinematic
     /// end has zero inverse mass, so it receives no impulse.
-    fn update_damp_springs(&self, sc: &mut Scratch) {
+    fn update_damp_springs(&self, sc: &mut Scratch, crew: Option<&Crew>) {
         let same = sc.damp_kin.as_ref().is_some_and(|k| {
             k.len() == sc.kin.len() && k.iter().zip(&sc.kin).all(|(a, b)| *a == b.0)
         });
@@ -497,18 +505,13 @@ impl Backbone {
         };
         let start = match &self.partition {
             None => 0,
-            Some(p) => {
-                for (buf, r) in sc.slabs.iter_mut().zip(&p.ranges) {
-                    for (j, d) in buf.damp.iter_mut().enumerate() {
-                        let s = r.start + j;
-                        *d = damp_spring(self.springs[s], p.local_springs[s], self.damp_weight[s]);
-                    }
-                }
-                p.cross_start
-            }
+            Some(p) => p.cross_start,
         };
         for s in start..self.springs.len() {
             sc.damp[s] = damp_spring(self.springs[s], self.springs[s], self.damp_weight[s]);
+        }
+        if let Some(p) = &self.partition {
+            split::fill_damp(self, p, sc, crew);
         }
         let ids = sc.damp_kin.get_or_insert_with(Vec::new);
         ids.clear();
@@ -520,7 +523,7 @@ impl Backbone {
     /// Elastic forces (and the explicit dashpot, when chosen) of `springs`, which are the
     /// backbone's springs from index `first` on, with endpoints indexing `x`, `v` and `f`.
     #[allow(clippy::too_many_arguments)]
-    fn elastic_pass(
+    pub(crate) fn elastic_pass(
         &self,
         first: usize,
         springs: &[[u32; 2]],
@@ -543,89 +546,6 @@ impl Backbone {
             );
         } else {
             kernels::elastic(springs, &self.stiffness[r.clone()], &rest[r], x, f, dir);
-        }
-    }
-
-    /// The elastic pass of a split rollout: every slab on a private copy of its particles in
-    /// parallel, their forces added to the shared array slab by slab, then the cross springs.
-    fn split_elastic_pass(&self, p: &Partition, sc: &mut Scratch) {
-        let (x, v, rest) = (&sc.x, &sc.v, &sc.rest);
-        sc.slabs
-            .par_iter_mut()
-            .zip(p.members.par_iter().zip(p.ranges.par_iter()))
-            .for_each(|(buf, (members, r))| {
-                for (j, &g) in members.iter().enumerate() {
-                    buf.x[j] = x[g as usize];
-                    buf.f[j] = Vec3A::ZERO;
-                }
-                if self.explicit_damping {
-                    for (j, &g) in members.iter().enumerate() {
-                        buf.v[j] = v[g as usize];
-                    }
-                }
-                let springs = &p.local_springs[r.clone()];
-                self.elastic_pass(
-                    r.start,
-                    springs,
-                    &buf.x,
-                    &buf.v,
-                    rest,
-                    &mut buf.f,
-                    &mut buf.dir,
-                );
-            });
-        for (buf, members) in sc.slabs.iter().zip(&p.members) {
-            for (j, &g) in members.iter().enumerate() {
-                sc.f[g as usize] += buf.f[j];
-            }
-        }
-        let c = p.cross_start;
-        self.elastic_pass(
-            c,
-            &self.springs[c..],
-            &sc.x,
-            &sc.v,
-            &sc.rest,
-            &mut sc.f,
-            &mut sc.dir[c..],
-        );
-    }
-}
-
-/// The dashpot sweeps of a split rollout, in the palindromic order `slabs, cross, cross
-/// reversed, slabs reversed` (slabs commute: they share no particle), so the pair of sweeps is
-/// still a symmetric contraction (docs/physics.md).
-fn split_damping_sweeps(p: &Partition, sc: &mut Scratch) {
-    let v = &sc.v;
-    sc.slabs
-        .par_iter_mut()
-        .zip(p.members.par_iter())
-        .for_each(|(buf, members)| {
-            for (j, &g) in members.iter().enumerate() {
-                buf.v[j] = v[g as usize];
-            }
-            kernels::damping_forward(&buf.damp, &buf.dir, &mut buf.v);
-        });
-    scatter_velocities(p, sc);
-    let c = p.cross_start;
-    kernels::damping_sweeps(&sc.damp[c..], &sc.dir[c..], &mut sc.v);
-    let v = &sc.v;
-    sc.slabs
-        .par_iter_mut()
-        .zip(p.members.par_iter())
-        .for_each(|(buf, members)| {
-            for (j, &g) in members.iter().enumerate() {
-                buf.v[j] = v[g as usize];
-            }
-            kernels::damping_backward(&buf.damp, &buf.dir, &mut buf.v);
-        });
-    scatter_velocities(p, sc);
-}
-
-fn scatter_velocities(p: &Partition, sc: &mut Scratch) {
-    for (buf, members) in sc.slabs.iter().zip(&p.members) {
-        for (j, &g) in members.iter().enumerate() {
-            sc.v[g as usize] = buf.v[j];
         }
     }
 }
