@@ -148,3 +148,32 @@ fn split_of_disconnected_objects_is_bit_identical() {
     };
     assert_eq!(bits(&run(1)), bits(&run(2)));
 }
+
+#[test]
+fn a_split_rollout_that_blows_up_returns_an_error() {
+    // Far too long a fixed substep: the crew must stop and the error come back (no hang).
+    let x = common::lattice(6, 3, 3, 0.01, Vec3::new(0.0, 0.0, 0.05));
+    let cfg = SimConfig {
+        partitions: 2,
+        substep: springs::Substep::Fixed { dt: 0.01 },
+        ground_z: None,
+        ..SimConfig::default()
+    };
+    let params = SpringParams {
+        stiffness: 5e4,
+        damping: 0.0,
+        threshold: 0.015,
+        ..SpringParams::reference_rope()
+    };
+    let bb = Backbone::new(&x, &[], params, cfg).unwrap();
+    let mut init = State::at_rest(x);
+    init.x[0].x += 0.003;
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(2)
+        .build()
+        .unwrap();
+    let err = pool
+        .install(|| bb.rollout(&init, &Actions::without_grippers(200)))
+        .unwrap_err();
+    assert!(matches!(err, springs::SimError::Diverged { .. }), "{err}");
+}
