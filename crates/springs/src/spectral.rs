@@ -13,14 +13,28 @@ use glam::DVec3;
 /// the spectrum from below; 64 steps leave well under 1 % on our scenes (`tests/spectral.rs`).
 const STEPS: usize = 64;
 
-/// Stiffness block of one spring for the estimate: `k (u uᵀ + t (I − u uᵀ))`.
-struct Block {
+/// Tension fractions `1 − l0 / l` up to this are rounding, not stretch (see `largest_eigenvalue`).
+const TINY_TENSION: f64 = 1e-5;
+
+/// One spring's part of `A = M^-1/2 K M^-1/2`: with `g_a = sqrt(k / m_a) u` and
+/// `g_b = sqrt(k / m_b) u`, its axial block maps `q` to `-(g_b·q_b - g_a·q_a) g_a` at `a` and
+/// `+(…) g_b` at `b`. Stretched springs add the tension block `k t (I - u uᵀ)`, kept apart
+/// because it is rare at rest.
+struct Axial {
+    a: usize,
+    b: usize,
+    ga: DVec3,
+    gb: DVec3,
+}
+
+/// Tension part `k t (I − u uᵀ)` of a stretched spring (`t = 1 − l0 / l > 0`; a zero-length
+/// spring has `t = 1` and no axial part, so its block is `k I`).
+struct Tension {
     a: usize,
     b: usize,
     u: DVec3,
-    k: f64,
-    /// Tension part `max(0, 1 − l0 / l)` (1 for a zero-length spring, whose block is `k I`).
-    t: f64,
+    /// `k t`, N/m.
+    kt: f64,
 }
 
 /// Largest eigenvalue (1/s²) of `M^-1 K` for springs `springs` with stiffness `k` (N/m) and
@@ -36,41 +50,60 @@ pub(crate) fn largest_eigenvalue(
     inv_m: &[f32],
 ) -> f64 {
     let n = x.len();
-    let blocks: Vec<Block> = springs
-        .iter()
-        .zip(k.iter().zip(rest))
-        .filter(|&(_, (&k, _))| k > 0.0)
-        .map(|(&[a, b], (&k, &l0))| {
-            let (a, b) = (a as usize, b as usize);
-            let d = x[b].as_dvec3() - x[a].as_dvec3();
-            let l = d.length();
-            let (u, t) = if l > 0.0 {
-                (d / l, (1.0 - f64::from(l0) / l).max(0.0))
-            } else {
-                (DVec3::ZERO, 1.0)
-            };
-            Block {
+    let s: Vec<f64> = inv_m.iter().map(|&w| f64::from(w).sqrt()).collect();
+    let (mut axial, mut tension) = (Vec::with_capacity(springs.len()), Vec::new());
+    let mut dropped = vec![0.0f64; n];
+    for (&[a, b], (&k, &l0)) in springs.iter().zip(k.iter().zip(rest)) {
+        if k <= 0.0 {
+            continue;
+        }
+        let (a, b, k) = (a as usize, b as usize, f64::from(k));
+        let d = x[b].as_dvec3() - x[a].as_dvec3();
+        let l = d.length();
+        let (u, t) = if l > 0.0 {
+            (d / l, (1.0 - f64::from(l0) / l).max(0.0))
+        } else {
+            (DVec3::ZERO, 1.0)
+        };
+        if l > 0.0 {
+            let sk = k.sqrt();
+            axial.push(Axial {
                 a,
                 b,
-                u,
-                k: f64::from(k),
-                t,
-            }
-        })
-        .collect();
-    if blocks.is_empty() {
-        return 0.0;
+                ga: u * (sk * s[a]),
+                gb: u * (sk * s[b]),
+            });
+        }
+        if t > TINY_TENSION {
+            tension.push(Tension { a, b, u, kt: k * t });
+        } else if t > 0.0 {
+            // Rounding-level stretch (rest lengths are f32 distances): bound its share by
+            // Gershgorin instead of carrying a block for nearly every spring.
+            dropped[a] += 2.0 * k * t;
+            dropped[b] += 2.0 * k * t;
+        }
     }
-    let s: Vec<f64> = inv_m.iter().map(|&w| f64::from(w).sqrt()).collect();
+    // Weyl: the dropped tension adds at most its largest mass-weighted row sum.
+    let dropped_bound = dropped
+        .iter()
+        .zip(inv_m)
+        .map(|(r, &w)| r * f64::from(w))
+        .fold(0.0, f64::max);
+    if axial.is_empty() && tension.is_empty() {
+        return dropped_bound;
+    }
     let apply = |q: &[DVec3], out: &mut [DVec3]| {
         out.fill(DVec3::ZERO);
-        for bl in &blocks {
-            // Relative displacement of the pair in physical units, then the block's force.
-            let d = q[bl.b] * s[bl.b] - q[bl.a] * s[bl.a];
-            let axial = bl.u * bl.u.dot(d);
-            let f = (axial + (d - axial) * bl.t) * bl.k;
-            out[bl.a] -= f * s[bl.a];
-            out[bl.b] += f * s[bl.b];
+        for sp in &axial {
+            let e = sp.gb.dot(q[sp.b]) - sp.ga.dot(q[sp.a]);
+            out[sp.a] -= sp.ga * e;
+            out[sp.b] += sp.gb * e;
+        }
+        for sp in &tension {
+            let d = q[sp.b] * s[sp.b] - q[sp.a] * s[sp.a];
+            let f = (d - sp.u * sp.u.dot(d)) * sp.kt;
+            out[sp.a] -= f * s[sp.a];
+            out[sp.b] += f * s[sp.b];
         }
     };
     // Deterministic pseudo-random start (splitmix64 of the index), so that no eigenvector is
@@ -107,7 +140,7 @@ pub(crate) fn largest_eigenvalue(
         beta_prev = b;
     }
     beta.truncate(alpha.len() - 1);
-    tridiagonal_max_eigenvalue(&alpha, &beta)
+    tridiagonal_max_eigenvalue(&alpha, &beta) + dropped_bound
 }
 
 fn dot(a: &[DVec3], b: &[DVec3]) -> f64 {
