@@ -8,10 +8,10 @@ use dataset::{Dataset, Split};
 use indicatif::{ProgressBar, ProgressStyle};
 use residual::{
     Combine, EncoderKind, ModelConfig, ResidualError, ResidualKind, ResidualNet, StartFrom,
-    TrainConfig, TrainSet, Trainer,
+    TrainConfig, TrainLoss, TrainSet, Trainer, clearly_better,
 };
 use scene::SceneConfig;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use crate::common::{ProtocolArg, read_backbone};
 use crate::report::write_json;
@@ -34,6 +34,15 @@ pub enum StartArg {
     Recorded,
     /// Half from a guided backbone rollout near the truth, half from the model's own.
     Guided,
+}
+
+/// `--loss`.
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+pub enum LossArg {
+    /// Mean squared distance to the truth, cm² (the paper's).
+    Mse,
+    /// Mean Euclidean distance to the truth, cm (the evaluation's MDE).
+    Distance,
 }
 
 /// Arguments of `train`.
@@ -61,7 +70,7 @@ pub struct TrainArgs {
     /// Final learning rate.
     #[arg(long, default_value_t = 1e-5)]
     pub lr_min: f64,
-    /// Gradient-norm clip (loss in cm²).
+    /// Gradient-norm clip (of the loss in cm² or cm, see --loss).
     #[arg(long, default_value_t = 1.0)]
     pub clip: f64,
     /// Seed of initialisation, sampling and augmentation.
@@ -76,6 +85,24 @@ pub struct TrainArgs {
     /// Save a resumable checkpoint every this many steps.
     #[arg(long, default_value_t = 100)]
     pub checkpoint_every: usize,
+    /// Also keep the network every this many steps as
+    /// `<run>/snapshots/step_<N>/residual.safetensors` (0: never), e.g. to evaluate how the
+    /// rollout error moves along training.
+    #[arg(long, default_value_t = 0)]
+    pub snapshot_every: usize,
+    /// Hold this many training episodes out of the optimiser's sampling (spread evenly over
+    /// the split) and choose the network by its rollout MDE over their full evaluation windows:
+    /// the network of step 0 (nearly the backbone), replaced at each evaluation (every
+    /// --select-every steps and at the end) by one that beats the current choice by more than
+    /// one standard error of the paired per-episode differences; the choice is written to
+    /// residual.safetensors (0: no selection, the last network is written). The val split is
+    /// never used. See docs/residual.md.
+    #[arg(long, default_value_t = 0)]
+    pub holdout: usize,
+    /// With --holdout: evaluate the held-out rollout MDE every this many optimiser steps
+    /// (and at the end).
+    #[arg(long, default_value_t = 200)]
+    pub select_every: usize,
     /// Ignore an existing checkpoint and start over.
     #[arg(long)]
     pub restart: bool,
@@ -113,9 +140,57 @@ pub struct TrainArgs {
     /// Residual bound, m/s per axis (0.1 in the paper).
     #[arg(long, default_value_t = 0.1)]
     pub residual_scale: f32,
+    /// Loss of each rollout step: `mse` (cm², the paper's) or `distance` (cm, the MDE that
+    /// evaluation reports; robust to segments the bounded residual cannot fix).
+    #[arg(long, value_enum, default_value_t = LossArg::Mse)]
+    pub loss: LossArg,
     /// Print only the final line.
     #[arg(long)]
     pub quiet: bool,
+}
+
+/// Checkpoint selection on held-out training episodes (`--holdout`), in `train.json`.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+struct Selection {
+    /// Dataset indices of the held-out training episodes (never sampled by the optimiser).
+    episodes: Vec<usize>,
+    /// Optimiser steps between evaluations.
+    every: usize,
+    /// Held-out rollout MDE of the backbone alone, cm.
+    backbone_mde_cm: f64,
+    /// Optimiser steps at which the network was evaluated.
+    steps: Vec<usize>,
+    /// Held-out rollout MDE at those steps, cm (null: a rollout diverged).
+    mde_cm: Vec<Option<f64>>,
+    /// Step of the network in residual.safetensors.
+    best_step: usize,
+    /// Its held-out rollout MDE per episode, cm.
+    best_episode_mde_cm: Vec<f64>,
+}
+
+impl Selection {
+    /// Held-out MDE of the selected network, cm.
+    fn best_mde_cm(&self) -> f64 {
+        self.best_episode_mde_cm.iter().sum::<f64>() / self.best_episode_mde_cm.len().max(1) as f64
+    }
+
+    /// Records the held-out MDE of `trainer`'s network and saves it as the run's network when
+    /// it is the first evaluated or [`residual::clearly_better`] than the one selected so far.
+    fn record(&mut self, held: &TrainSet, trainer: &Trainer, run: &Path) -> anyhow::Result<()> {
+        if self.steps.last() == Some(&trainer.step) {
+            return Ok(());
+        }
+        let per_episode = held.rollout_mde_cm(Some(&trainer.net))?;
+        let mde = per_episode.iter().sum::<f64>() / per_episode.len().max(1) as f64;
+        self.steps.push(trainer.step);
+        self.mde_cm.push(mde.is_finite().then_some(mde));
+        if self.steps.len() == 1 || clearly_better(&per_episode, &self.best_episode_mde_cm) {
+            self.best_step = trainer.step;
+            self.best_episode_mde_cm = per_episode;
+            trainer.net.save(&run.join("residual.safetensors"))?;
+        }
+        Ok(())
+    }
 }
 
 /// What `train` writes to `<run>/train.json`.
@@ -129,7 +204,9 @@ struct TrainReport {
     parameters: usize,
     steps_done: usize,
     status: String,
+    /// Per optimiser step, in `loss_unit` (the name predates `--loss distance`).
     loss_cm2: Vec<f64>,
+    loss_unit: &'static str,
     grad_norm: Vec<f64>,
     lr: Vec<f64>,
     diverged_rollouts: usize,
@@ -138,6 +215,8 @@ struct TrainReport {
     threads: usize,
     model_config: ModelConfig,
     train_config: TrainConfig,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    selection: Option<Selection>,
 }
 
 fn model_config(args: &TrainArgs) -> ModelConfig {
@@ -184,7 +263,7 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
         .ok();
     let data = Dataset::open(&args.data)?;
     let backbone = read_backbone(&args.run)?;
-    let set = TrainSet::with_protocol(
+    let mut set = TrainSet::with_protocol(
         &data,
         Split::Train,
         &backbone.params,
@@ -192,6 +271,10 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
         args.protocol.into(),
     )
     .with_context(|| format!("loading training episodes of {}", args.data.display()))?;
+    let held = match args.holdout {
+        0 => None,
+        n => Some(set.hold_out(n)?),
+    };
     let model_cfg = model_config(args);
     let train_cfg = TrainConfig {
         iterations: args.iterations,
@@ -209,13 +292,19 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
         },
         refresh_every: args.refresh_every,
         seed: args.seed,
+        loss: match args.loss {
+            LossArg::Mse => TrainLoss::Mse,
+            LossArg::Distance => TrainLoss::Distance,
+        },
     };
+    let unit = train_cfg.loss.unit();
     let net = ResidualNet::new(&model_cfg, args.seed)?;
     let parameters = net.parameter_count();
     let mut trainer = Trainer::new(net, train_cfg.clone())?;
     let ckpt = args.run.join("train_ckpt.safetensors");
     let report_path = args.run.join("train.json");
     let (mut loss, mut gnorm, mut lrs, mut prior_wall) = (Vec::new(), Vec::new(), Vec::new(), 0.0);
+    let mut selection: Option<Selection> = None;
     if ckpt.exists() && !args.restart {
         trainer
             .load_checkpoint(&ckpt)
@@ -229,6 +318,18 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
             gnorm.truncate(keep);
             lrs.truncate(keep);
             prior_wall = prev["wall_s"].as_f64().unwrap_or(0.0);
+            selection = serde_json::from_value::<Selection>(prev["selection"].clone())
+                .ok()
+                .filter(|s| {
+                    held.as_ref()
+                        .is_some_and(|h| h.episode_indices() == s.episodes && s.best_step <= keep)
+                })
+                .map(|mut s| {
+                    let n = s.steps.iter().take_while(|&&t| t <= keep).count();
+                    s.steps.truncate(n);
+                    s.mde_cm.truncate(n);
+                    s
+                });
         }
         if !args.quiet {
             eprintln!("resuming at step {} from {}", trainer.step, ckpt.display());
@@ -244,6 +345,26 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
     )?);
     bar.set_position(trainer.step as u64);
     let t_train = Instant::now();
+    if let Some(held) = &held {
+        let mut sel = match selection.take() {
+            Some(s) => s,
+            None => Selection {
+                episodes: held.episode_indices(),
+                every: args.select_every.max(1),
+                backbone_mde_cm: {
+                    let e = held.rollout_mde_cm(None)?;
+                    e.iter().sum::<f64>() / e.len().max(1) as f64
+                },
+                steps: Vec::new(),
+                mde_cm: Vec::new(),
+                best_step: trainer.step,
+                best_episode_mde_cm: Vec::new(),
+            },
+        };
+        sel.every = args.select_every.max(1);
+        sel.record(held, &trainer, &args.run)?;
+        selection = Some(sel);
+    }
     let mut diverged_rollouts = 0;
     let mut status = "done".to_string();
     let save = |trainer: &Trainer,
@@ -251,10 +372,13 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
                 gnorm: &[f64],
                 lrs: &[f64],
                 status: &str,
-                diverged: usize|
+                diverged: usize,
+                selection: &Option<Selection>|
      -> anyhow::Result<()> {
         trainer.save_checkpoint(&ckpt)?;
-        trainer.net.save(&args.run.join("residual.safetensors"))?;
+        if selection.is_none() {
+            trainer.net.save(&args.run.join("residual.safetensors"))?;
+        }
         let session = t0.elapsed().as_secs_f64();
         write_json(
             &report_path,
@@ -268,6 +392,7 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
                 steps_done: trainer.step,
                 status: status.to_string(),
                 loss_cm2: loss.to_vec(),
+                loss_unit: unit,
                 grad_norm: gnorm.to_vec(),
                 lr: lrs.to_vec(),
                 diverged_rollouts: diverged,
@@ -276,6 +401,7 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
                 threads: args.threads,
                 model_config: trainer.net.config().clone(),
                 train_config: trainer.cfg.clone(),
+                selection: selection.clone(),
             },
         )
     };
@@ -292,7 +418,7 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
                     .filter(|l| l.is_finite())
                     .sum::<f64>()
                     / n as f64;
-                bar.set_message(format!("loss {recent:.4} cm²"));
+                bar.set_message(format!("loss {recent:.4} {unit}"));
                 bar.set_position(trainer.step as u64);
             }
             Err(ResidualError::Diverged { step, what }) => {
@@ -301,8 +427,29 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
             }
             Err(e) => return Err(e.into()),
         }
+        if args.snapshot_every > 0 && trainer.step % args.snapshot_every == 0 {
+            let dir = args
+                .run
+                .join("snapshots")
+                .join(format!("step_{:05}", trainer.step));
+            std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+            trainer.net.save(&dir.join("residual.safetensors"))?;
+        }
+        if let (Some(held), Some(sel)) = (&held, &mut selection)
+            && trainer.step % sel.every == 0
+        {
+            sel.record(held, &trainer, &args.run)?;
+        }
         if trainer.step % args.checkpoint_every.max(1) == 0 {
-            save(&trainer, &loss, &gnorm, &lrs, "running", diverged_rollouts)?;
+            save(
+                &trainer,
+                &loss,
+                &gnorm,
+                &lrs,
+                "running",
+                diverged_rollouts,
+                &selection,
+            )?;
         }
         if args
             .max_minutes
@@ -313,7 +460,18 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
         }
     }
     bar.finish_and_clear();
-    save(&trainer, &loss, &gnorm, &lrs, &status, diverged_rollouts)?;
+    if let (Some(held), Some(sel)) = (&held, &mut selection) {
+        sel.record(held, &trainer, &args.run)?;
+    }
+    save(
+        &trainer,
+        &loss,
+        &gnorm,
+        &lrs,
+        &status,
+        diverged_rollouts,
+        &selection,
+    )?;
     let first = loss
         .iter()
         .take(20)
@@ -329,16 +487,27 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
         .collect::<Vec<_>>();
     let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
     println!(
-        "pgrd ({}) on {}: {} steps, loss {:.4} -> {:.4} cm² (mean of first/last 20), {} diverged rollouts, {:.1} s -> {}",
+        "pgrd ({}) on {}: {} steps, {} loss {:.4} -> {:.4} {unit} (mean of first/last 20), {} diverged rollouts, {:.1} s -> {}",
         trainer.net.config().variant(),
         data.meta.object,
         trainer.step,
+        train_cfg.loss.name(),
         mean(&first),
         mean(&last),
         diverged_rollouts,
         prior_wall + t_train.elapsed().as_secs_f64(),
         report_path.display()
     );
+    if let Some(sel) = &selection {
+        println!(
+            "selected the network of step {} of {}: held-out rollout MDE {:.3} cm on {} training episodes (backbone {:.3} cm)",
+            sel.best_step,
+            trainer.step,
+            sel.best_mde_cm(),
+            sel.episodes.len(),
+            sel.backbone_mde_cm
+        );
+    }
     anyhow::ensure!(
         !status.starts_with("diverged"),
         "training {status} (the run's train.json records it; residual.safetensors holds the last finite parameters)"

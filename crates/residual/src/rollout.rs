@@ -2,12 +2,13 @@
 //! state. Used for evaluation (detached, one step at a time) and for training (one graph
 //! through all steps of a segment).
 
-use candle_core::{DType, Tensor};
+use candle_core::Tensor;
 use dataset::Episode;
 use glam::Vec3;
 use scene::Scene;
 use springs::{Actions, Backbone, SimError, State};
 
+use crate::loss::{TrainLoss, step_loss};
 use crate::model::{INPUTS, ResidualNet};
 use crate::nn::Pass;
 use crate::serialize::{CURVES, Structure};
@@ -109,7 +110,7 @@ impl Default for RolloutOptions {
     }
 }
 
-fn to_tensor(v: &[Vec3], dev: &candle_core::Device) -> Result<Tensor> {
+pub(crate) fn to_tensor(v: &[Vec3], dev: &candle_core::Device) -> Result<Tensor> {
     let flat: Vec<f32> = v.iter().flat_map(|p| p.to_array()).collect();
     Ok(Tensor::from_vec(flat, (v.len(), 3), dev)?)
 }
@@ -136,6 +137,18 @@ pub fn hybrid_rollout(
     history: &History,
     opts: RolloutOptions,
 ) -> Result<HybridRollout> {
+    hybrid_rollout_with_loss(net, backbone, scene, history, opts, TrainLoss::Mse)
+}
+
+/// [`hybrid_rollout`] whose training loss (with `opts.train`) is `kind`.
+pub(crate) fn hybrid_rollout_with_loss(
+    net: &ResidualNet,
+    backbone: &Backbone,
+    scene: &Scene,
+    history: &History,
+    opts: RolloutOptions,
+    kind: TrainLoss,
+) -> Result<HybridRollout> {
     let n = scene.particles();
     if backbone.num_particles() != n {
         return Err(ResidualError::Input(format!(
@@ -144,7 +157,7 @@ pub fn hybrid_rollout(
         )));
     }
     let steps = opts.steps.min(scene.window.steps);
-    let loss = |step: usize, x: &Tensor| step_loss(scene, step, x);
+    let loss = |step: usize, x: &Tensor| step_loss(kind, scene, step, x);
     run(
         net,
         backbone,
@@ -347,20 +360,4 @@ fn run(
         velocities,
         loss,
     })
-}
-
-/// Mean squared distance (cm²) between the tracked particles the tracker saw and the truth.
-fn step_loss(scene: &Scene, step: usize, x: &Tensor) -> Result<Tensor> {
-    let dev = x.device();
-    let vis = &scene.visible[step];
-    let all = !vis.iter().any(|v| *v);
-    let idx: Vec<u32> = (0..scene.tracked)
-        .filter(|&i| all || vis[i])
-        .map(|i| i as u32)
-        .collect();
-    let truth: Vec<Vec3> = idx.iter().map(|&i| scene.truth[step][i as usize]).collect();
-    let ids = Tensor::from_slice(&idx, idx.len(), dev)?;
-    let diff = (x.index_select(&ids, 0)? - to_tensor(&truth, dev)?)?;
-    let m = diff.sqr()?.sum_all()?.to_dtype(DType::F32)?;
-    Ok((m * (1e4 / idx.len().max(1) as f64))?)
 }

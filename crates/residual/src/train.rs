@@ -13,7 +13,13 @@ use scene::{Protocol, Scene, SceneConfig, Window};
 use serde::{Deserialize, Serialize};
 use springs::{Backbone, SpringParams, State};
 
+mod holdout;
+
+pub use holdout::clearly_better;
+
 use crate::augment::{rotate_history, rotate_scene};
+use crate::loss::TrainLoss;
+use crate::rollout::hybrid_rollout_with_loss;
 use crate::{History, ResidualError, ResidualNet, Result, RolloutOptions, hybrid_rollout};
 
 /// Optimisation settings (saved in `train.json`).
@@ -45,6 +51,10 @@ pub struct TrainConfig {
     /// (0: keep the backbone's rollout).
     #[serde(default)]
     pub refresh_every: usize,
+    /// Loss of each rollout step (configurations written before this option trained with
+    /// [`TrainLoss::Mse`]).
+    #[serde(default)]
+    pub loss: TrainLoss,
 }
 
 /// The state a training segment starts from.
@@ -78,6 +88,7 @@ impl Default for TrainConfig {
             seed: 0,
             start_from: StartFrom::Guided,
             refresh_every: 0,
+            loss: TrainLoss::Mse,
         }
     }
 }
@@ -96,6 +107,8 @@ impl TrainConfig {
 /// One training episode: the evaluation scene's backbone (springs from the protocol's start
 /// frame, as at evaluation) and the recorded frames.
 struct TrainEpisode {
+    /// Index of the episode in its dataset.
+    index: usize,
     episode: Episode,
     base: Scene,
     backbone: Backbone,
@@ -170,6 +183,7 @@ impl TrainSet {
             let backbone = base.backbone(params, &base.sim_config(), Default::default())?;
             let history = History::from_episode(&base, &episode, data.meta.fps)?;
             episodes.push(TrainEpisode {
+                index: i,
                 episode,
                 base,
                 backbone,
@@ -375,7 +389,7 @@ impl TrainSet {
 /// Statistics of one optimiser step.
 #[derive(Clone, Copy, Debug, Serialize, Deserialize)]
 pub struct StepStats {
-    /// Mean rollout loss (sum over steps of the mean squared distance, cm²).
+    /// Mean rollout loss: sum over steps of the per-step loss ([`TrainConfig::loss`]; cm² or cm).
     pub loss: f64,
     /// Gradient norm before clipping.
     pub grad_norm: f64,
@@ -474,12 +488,13 @@ impl Trainer {
                 train: true,
                 curves,
             };
-            match hybrid_rollout(
+            match hybrid_rollout_with_loss(
                 &self.net,
                 set.backbone(sample),
                 &sample.scene,
                 &sample.history,
                 opts,
+                self.cfg.loss,
             ) {
                 Ok(out) => {
                     let l = out

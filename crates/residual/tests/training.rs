@@ -7,8 +7,8 @@ use dataset::{Dataset, Split};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use residual::{
-    ModelConfig, ResidualNet, RolloutOptions, Sample, TrainConfig, TrainSet, Trainer,
-    hybrid_rollout,
+    ModelConfig, ResidualNet, RolloutOptions, Sample, TrainConfig, TrainLoss, TrainSet, Trainer,
+    clearly_better, hybrid_rollout,
 };
 use scene::SceneConfig;
 use springs::SpringParams;
@@ -76,6 +76,84 @@ fn training_reduces_the_loss() {
     assert!(after < 0.5 * before, "loss {before:.4} -> {after:.4} cm²");
 }
 
+/// Mean distance (cm) of the tracked particles the tracker saw from the truth, averaged over
+/// the steps of `samples`' rollouts: the evaluation's MDE, computed here from the rollout's
+/// positions, not by the training loss.
+fn mde_of(net: &ResidualNet, set: &TrainSet, samples: &[Sample], steps: usize) -> f64 {
+    let opts = RolloutOptions {
+        steps,
+        ..Default::default()
+    };
+    let mut sum = 0.0;
+    let mut count = 0usize;
+    for s in samples {
+        let out = hybrid_rollout(net, set.backbone(s), &s.scene, &s.history, opts).unwrap();
+        for (k, x) in out.positions.iter().enumerate() {
+            let vis = &s.scene.visible[k];
+            let all = !vis.iter().any(|v| *v);
+            let d: Vec<f64> = (0..s.scene.tracked)
+                .filter(|&i| all || vis[i])
+                .map(|i| f64::from((x[i] - s.scene.truth[k][i]).length()))
+                .collect();
+            sum += 100.0 * d.iter().sum::<f64>() / d.len() as f64;
+            count += 1;
+        }
+    }
+    sum / count as f64
+}
+
+/// The distance loss trains through the same path: on two fixed fixture segments the
+/// rollouts' MDE (measured from the positions, not from the loss) falls by more than a third.
+#[test]
+fn training_with_the_distance_loss_reduces_the_mde() {
+    let set = set();
+    let steps = 3;
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let samples: Vec<Sample> = (0..2)
+        .map(|_| set.sample(&mut rng, steps, false).unwrap())
+        .collect();
+    let cfg = TrainConfig {
+        iterations: 70,
+        rollout_steps: steps,
+        batch: 2,
+        lr: 3e-3,
+        decay_steps: 70,
+        seed: 2,
+        loss: TrainLoss::Distance,
+        ..TrainConfig::default()
+    };
+    let model = ModelConfig {
+        residual_scale: 0.5,
+        ..ModelConfig::tiny()
+    };
+    let mut trainer = Trainer::new(ResidualNet::new(&model, 2).unwrap(), cfg).unwrap();
+    let before = mde_of(&trainer.net, &set, &samples, steps);
+    for _ in 0..70 {
+        let s = trainer.train_on(&set, &samples).unwrap();
+        assert!(s.loss.is_finite() && s.grad_norm.is_finite());
+    }
+    let after = mde_of(&trainer.net, &set, &samples, steps);
+    assert!(after < 0.67 * before, "MDE {before:.3} -> {after:.3} cm");
+}
+
+/// `train.json` / `train_ckpt.json` written before the loss option existed have no `loss`:
+/// they trained with the squared loss and must read back as such.
+#[test]
+fn train_configs_without_a_loss_read_as_mse() {
+    // The "train" object of runs/s3/teddy_gen/train_ckpt.json (session 3).
+    let old = r#"{"augment":true,"batch":2,"clip":1.0,"decay_steps":4000,"iterations":4000,"lr":0.001,"lr_min":0.00001,"refresh_every":0,"rollout_steps":5,"seed":0,"start_from":"guided"}"#;
+    let c: TrainConfig = serde_json::from_str(old).unwrap();
+    assert_eq!(c.loss, TrainLoss::Mse);
+    assert_eq!(c.iterations, 4000);
+    let d = TrainConfig {
+        loss: TrainLoss::Distance,
+        ..TrainConfig::default()
+    };
+    let text = serde_json::to_string(&d).unwrap();
+    assert!(text.contains("\"loss\":\"distance\""), "{text}");
+    assert_eq!(serde_json::from_str::<TrainConfig>(&text).unwrap(), d);
+}
+
 #[test]
 fn resuming_continues_exactly() {
     let set = set();
@@ -118,4 +196,133 @@ fn cosine_schedule() {
     assert!((c.lr_at(50) - (1e-5 + 0.5 * (1e-3 - 1e-5))).abs() < 1e-9);
     assert_eq!(c.lr_at(100), 1e-5);
     assert_eq!(c.lr_at(1000), 1e-5);
+}
+
+/// The rope fixture's training set with the reference parameters, and its scenes, histories
+/// and backbones built independently of the set.
+fn fixture_scenes() -> Vec<(scene::Scene, residual::History, springs::Backbone)> {
+    let data = Dataset::open(common::fixture("rope")).unwrap();
+    data.split_indices(Split::Train)
+        .into_iter()
+        .map(|i| {
+            let (_, _, scene, history, bb) = common::scene("rope", i);
+            (scene, history, bb)
+        })
+        .collect()
+}
+
+/// Mean over steps and episodes of the mean distance (cm) of the seen tracked particles from
+/// the truth, computed from positions directly.
+fn direct_mde(scenes: &[&scene::Scene], preds: &[Vec<Vec<glam::Vec3>>]) -> f64 {
+    let mut per_episode = Vec::new();
+    for (scene, pred) in scenes.iter().zip(preds) {
+        let mut sum = 0.0;
+        for (k, x) in pred.iter().enumerate() {
+            let vis = &scene.visible[k];
+            let all = !vis.iter().any(|v| *v);
+            let d: Vec<f64> = (0..scene.tracked)
+                .filter(|&i| all || vis[i])
+                .map(|i| f64::from((x[i] - scene.truth[k][i]).length()))
+                .collect();
+            sum += d.iter().sum::<f64>() / d.len() as f64;
+        }
+        per_episode.push(100.0 * sum / pred.len() as f64);
+    }
+    per_episode.iter().sum::<f64>() / per_episode.len() as f64
+}
+
+#[test]
+fn held_out_episodes_are_spread_and_leave_the_rest() {
+    let data = Dataset::open(common::fixture("rope")).unwrap();
+    let all = data.split_indices(Split::Train);
+    assert!(
+        all.len() >= 3,
+        "fixture has {} training episodes",
+        all.len()
+    );
+    let mut s = set();
+    assert!(s.hold_out(0).is_err());
+    assert!(s.hold_out(all.len()).is_err());
+    let held = s.hold_out(2).unwrap();
+    // Episodes ⌊j·n/2⌋: the first and the middle one.
+    assert_eq!(held.episode_indices(), vec![all[0], all[all.len() / 2]]);
+    let mut rest = s.episode_indices();
+    rest.extend(held.episode_indices());
+    rest.sort_unstable();
+    assert_eq!(rest, all);
+    assert_eq!(s.len() + held.len(), all.len());
+}
+
+/// The held-out score is the evaluation's MDE: recomputed here from the backbone's and the
+/// hybrid model's rollouts of independently built scenes.
+#[test]
+fn held_out_rollout_mde_is_the_evaluation_mde() {
+    let s = set();
+    let scenes = fixture_scenes();
+    let refs: Vec<&scene::Scene> = scenes.iter().map(|(sc, _, _)| sc).collect();
+    let backbone: Vec<_> = scenes
+        .iter()
+        .map(|(sc, _, bb)| {
+            let mut p = bb.rollout(&sc.init, &sc.actions).unwrap().positions;
+            p.remove(0);
+            p
+        })
+        .collect();
+    let want = direct_mde(&refs, &backbone);
+    let got = mean(&s.rollout_mde_cm(None).unwrap());
+    assert!((got - want).abs() < 1e-6 * want, "{got} vs {want} cm");
+
+    // A network with visible residuals (0.5 m/s bound, default-scale output layers would be
+    // closer to zero; a few training steps move it off the backbone).
+    let model = ModelConfig {
+        residual_scale: 0.5,
+        ..ModelConfig::tiny()
+    };
+    let cfg = TrainConfig {
+        batch: 1,
+        lr: 1e-2,
+        seed: 4,
+        ..TrainConfig::default()
+    };
+    let mut trainer = Trainer::new(ResidualNet::new(&model, 4).unwrap(), cfg).unwrap();
+    for _ in 0..3 {
+        trainer.train_step(&s).unwrap();
+    }
+    let hybrid: Vec<_> = scenes
+        .iter()
+        .map(|(sc, h, bb)| {
+            hybrid_rollout(&trainer.net, bb, sc, h, RolloutOptions::default())
+                .unwrap()
+                .positions
+        })
+        .collect();
+    let want = direct_mde(&refs, &hybrid);
+    let got = mean(&s.rollout_mde_cm(Some(&trainer.net)).unwrap());
+    assert!((got - want).abs() < 1e-6 * want, "{got} vs {want} cm");
+    let bb = mean(&s.rollout_mde_cm(None).unwrap());
+    assert!((got - bb).abs() > 1e-3, "network had no effect");
+}
+
+fn mean(v: &[f64]) -> f64 {
+    v.iter().sum::<f64>() / v.len() as f64
+}
+
+#[test]
+fn one_standard_error_rule() {
+    // Better on every episode by exactly 1 cm: zero spread, a clear improvement.
+    let cur = [5.0, 9.0, 3.0, 12.0];
+    let all = [4.0, 8.0, 2.0, 11.0];
+    assert!(clearly_better(&all, &cur));
+    assert!(!clearly_better(&cur, &all));
+    assert!(!clearly_better(&cur, &cur));
+    // Differences 3, −1, 3, −1 cm: mean 1, sample sd √(16/3), standard error √(4/3) ≈ 1.155 > 1.
+    let mixed = [2.0, 10.0, 0.0, 13.0];
+    assert!(!clearly_better(&mixed, &cur));
+    // Differences 3, 0, 3, 0 cm: mean 1.5, sample sd √3, standard error √3/2 ≈ 0.866 < 1.5.
+    let mostly = [2.0, 9.0, 0.0, 12.0];
+    assert!(clearly_better(&mostly, &cur));
+    // Diverged rollouts, mismatched or too few episodes never win.
+    assert!(!clearly_better(&[f64::INFINITY, 1.0, 1.0, 1.0], &cur));
+    assert!(!clearly_better(&all[..3], &cur));
+    assert!(!clearly_better(&[1.0], &[2.0]));
 }

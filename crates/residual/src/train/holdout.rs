@@ -1,0 +1,106 @@
+//! Held-out rollout error: choosing a checkpoint by what evaluation measures, on training
+//! episodes the optimiser never samples (never on the split a report is made on).
+
+use rayon::prelude::*;
+
+use super::TrainSet;
+use crate::{ResidualError, ResidualNet, Result, RolloutOptions, hybrid_rollout};
+
+impl TrainSet {
+    /// Moves `count` episodes out of this set into a new one (for [`TrainSet::rollout_mde_cm`]),
+    /// spread evenly over the set: episodes `⌊j · n / count⌋` for `j < count`. Consecutive
+    /// episodes of a generated dataset continue one another, so a contiguous block would
+    /// cover only a few situations. Errors when fewer than one episode would be left to train on.
+    pub fn hold_out(&mut self, count: usize) -> Result<TrainSet> {
+        let n = self.episodes.len();
+        if count == 0 || count >= n {
+            return Err(ResidualError::Input(format!(
+                "cannot hold out {count} of {n} training episodes (need 1 ..= {})",
+                n.saturating_sub(1)
+            )));
+        }
+        let picked: Vec<usize> = (0..count).map(|j| j * n / count).collect();
+        let all = std::mem::take(&mut self.episodes);
+        let (mut kept, mut held) = (Vec::with_capacity(n - count), Vec::with_capacity(count));
+        for (i, ep) in all.into_iter().enumerate() {
+            if picked.contains(&i) {
+                held.push(ep);
+            } else {
+                kept.push(ep);
+            }
+        }
+        self.episodes = kept;
+        Ok(TrainSet {
+            episodes: held,
+            meta: self.meta.clone(),
+            params: self.params,
+            scene_cfg: self.scene_cfg.clone(),
+        })
+    }
+
+    /// Dataset indices of this set's episodes.
+    pub fn episode_indices(&self) -> Vec<usize> {
+        self.episodes.iter().map(|e| e.index).collect()
+    }
+
+    /// Per episode, the mean distance (cm) between predicted and recorded positions of the
+    /// seen tracked particles over every step of its evaluation window, as `cargo xtask eval`
+    /// scores it (its MDE is the mean of these): free-running from the window's start frame,
+    /// the hybrid model's rollout when `net` is given, else the backbone's. A diverged hybrid
+    /// rollout scores infinity. Episodes run in parallel on the current rayon pool; the result
+    /// does not depend on the thread count.
+    pub fn rollout_mde_cm(&self, net: Option<&ResidualNet>) -> Result<Vec<f64>> {
+        self.episodes
+            .par_iter()
+            .map(|ep| {
+                let scene = &ep.base;
+                let mut pred = match net {
+                    Some(net) => match hybrid_rollout(
+                        net,
+                        &ep.backbone,
+                        scene,
+                        &ep.history,
+                        RolloutOptions::default(),
+                    ) {
+                        Ok(r) => r.positions,
+                        Err(ResidualError::Diverged { .. }) => return Ok(f64::INFINITY),
+                        Err(e) => return Err(e),
+                    },
+                    None => {
+                        let mut p = ep.backbone.rollout(&scene.init, &scene.actions)?.positions;
+                        p.remove(0);
+                        p
+                    }
+                };
+                for p in &mut pred {
+                    p.truncate(scene.tracked);
+                }
+                let steps = scene::score_steps(scene, &pred, false)?;
+                Ok(100.0 * steps.iter().map(|s| s.mde).sum::<f64>() / steps.len().max(1) as f64)
+            })
+            .collect()
+    }
+}
+
+/// Whether `candidate` beats `current` on the same held-out episodes (per-episode errors,
+/// e.g. [`TrainSet::rollout_mde_cm`]) by more than one standard error: the mean of the paired
+/// differences `current − candidate` must exceed its standard error (sample standard deviation
+/// over √n). The one-standard-error rule of model selection: keep the simpler model (the
+/// network at step 0, i.e. nearly the backbone, or an earlier choice) unless the held-out
+/// evidence against it is clear. Per-episode errors of a few held-out episodes vary by
+/// centimetres, while a network that is worse on unseen episodes can still score slightly
+/// better on them (`docs/residual.md`, "Why PGRD was worse on the teddy"). False for
+/// mismatched lengths, fewer than two episodes or any non-finite error.
+pub fn clearly_better(candidate: &[f64], current: &[f64]) -> bool {
+    let n = candidate.len();
+    if n < 2 || current.len() != n {
+        return false;
+    }
+    if candidate.iter().chain(current).any(|e| !e.is_finite()) {
+        return false;
+    }
+    let d: Vec<f64> = current.iter().zip(candidate).map(|(a, b)| a - b).collect();
+    let mean = d.iter().sum::<f64>() / n as f64;
+    let var = d.iter().map(|x| (x - mean) * (x - mean)).sum::<f64>() / (n - 1) as f64;
+    mean > (var / n as f64).sqrt()
+}
