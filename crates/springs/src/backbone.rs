@@ -230,11 +230,32 @@ impl Backbone {
     /// the explicit dashpot adds `2 sum_s c_s` to the damping row (Gershgorin on `M^-1 C`).
     fn stability_bound(&self) -> f32 {
         let n = self.rest_positions.len();
+        let (row, damp) = self.gershgorin_rows(true);
+        let mut dt_max = f64::INFINITY;
+        for i in 0..n {
+            let inv_m = f64::from(self.inv_mass[i]);
+            let lambda = f64::from(row[i].max(0.0)) * inv_m;
+            let gamma = f64::from(damp[i].max(0.0)) * inv_m;
+            if lambda > 0.0 || gamma > 0.0 {
+                // Positive root of lambda dt^2 + 2 gamma dt - 4 = 0.
+                dt_max = dt_max.min(4.0 / (gamma + (gamma * gamma + 4.0 * lambda).sqrt()));
+            }
+        }
+        dt_max as f32
+    }
+
+    /// Per-particle Gershgorin rows (N/m) of the stiffness — the springs' own `2 Σ k` when
+    /// `springs` is set, then the ground's and the effects' — and of the explicit damping
+    /// (N·s/m: the explicit dashpot's `2 Σ c`, then the effects').
+    fn gershgorin_rows(&self, springs: bool) -> (Vec<f32>, Vec<f32>) {
+        let n = self.rest_positions.len();
         let mut row = vec![0.0f32; n];
         let mut damp = vec![0.0f32; n];
-        for (&[a, b], &k) in self.springs.iter().zip(&self.stiffness) {
-            row[a as usize] += 2.0 * k;
-            row[b as usize] += 2.0 * k;
+        if springs {
+            for (&[a, b], &k) in self.springs.iter().zip(&self.stiffness) {
+                row[a as usize] += 2.0 * k;
+                row[b as usize] += 2.0 * k;
+            }
         }
         if self.config.dashpot == Dashpot::Explicit {
             for (&[a, b], &c) in self.springs.iter().zip(&self.damping) {
@@ -250,17 +271,7 @@ impl Backbone {
         for e in &self.effects {
             e.stability(self, &mut row, &mut damp);
         }
-        let mut dt_max = f64::INFINITY;
-        for i in 0..n {
-            let inv_m = f64::from(self.inv_mass[i]);
-            let lambda = f64::from(row[i].max(0.0)) * inv_m;
-            let gamma = f64::from(damp[i].max(0.0)) * inv_m;
-            if lambda > 0.0 || gamma > 0.0 {
-                // Positive root of lambda dt^2 + 2 gamma dt - 4 = 0.
-                dt_max = dt_max.min(4.0 / (gamma + (gamma * gamma + 4.0 * lambda).sqrt()));
-            }
-        }
-        dt_max as f32
+        (row, damp)
     }
 
     /// Largest stable substep for [`Substep::Spectral`], s: as [`Self::stability_bound`], with
@@ -270,20 +281,7 @@ impl Backbone {
     /// the largest eigenvalues), and explicit damping enters as before.
     fn spectral_bound(&self) -> f32 {
         let n = self.rest_positions.len();
-        let mut row = vec![0.0f32; n];
-        let mut damp = vec![0.0f32; n];
-        if self.config.dashpot == Dashpot::Explicit {
-            for (&[a, b], &c) in self.springs.iter().zip(&self.damping) {
-                damp[a as usize] += 2.0 * c;
-                damp[b as usize] += 2.0 * c;
-            }
-        }
-        if self.config.ground_z.is_some() {
-            row.fill(GROUND_STIFFNESS);
-        }
-        for e in &self.effects {
-            e.stability(self, &mut row, &mut damp);
-        }
+        let (row, damp) = self.gershgorin_rows(false);
         let (mut extra, mut gamma) = (0.0f64, 0.0f64);
         for i in 0..n {
             let inv_m = f64::from(self.inv_mass[i]);
