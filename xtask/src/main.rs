@@ -3,6 +3,11 @@
 
 use clap::{Parser, Subcommand};
 
+/// mimalloc instead of glibc's malloc, which returns the residual network's freed buffers to the
+/// system after every call and faults them back in (`docs/plan.md`, "Planning speed").
+#[global_allocator]
+static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 mod cmd_demo;
 mod cmd_diagnose;
 mod cmd_eval;

@@ -6,6 +6,7 @@ use metrics::PointIndex;
 use serde::{Deserialize, Serialize};
 use springs::BoxObstacle;
 
+use crate::nearest::{MAX_PAIRS, Target};
 use crate::{PlanError, Result};
 
 /// Which predicted states the Chamfer term reads.
@@ -50,6 +51,8 @@ impl Workspace {
 #[derive(Clone, Debug)]
 pub struct Objective {
     target: PointIndex,
+    /// The same points for brute-force Chamfer distances of small clouds.
+    brute: Target,
     /// Where the grippers may go.
     pub workspace: Workspace,
     /// Obstacles the grippers must keep clear of.
@@ -84,6 +87,7 @@ impl Objective {
         let pts: Vec<[f32; 3]> = target.iter().map(|p| p.to_array()).collect();
         Ok(Objective {
             target: PointIndex::new(&pts)?,
+            brute: Target::new(target),
             workspace,
             obstacles: Vec::new(),
             gripper_clearance_m: 0.01,
@@ -95,6 +99,14 @@ impl Objective {
 
     /// Two-sided Chamfer distance (sum of both one-sided means) from `x` to the target, m.
     pub fn chamfer(&self, x: &[Vec3]) -> Result<f64> {
+        // Small clouds by brute force (same distances up to f32 rounding); large ones, and
+        // empty or non-finite ones (for the error), through the k-d trees.
+        if !x.is_empty()
+            && x.len() * self.brute.len() <= MAX_PAIRS
+            && x.iter().all(|p| p.is_finite())
+        {
+            return Ok(self.brute.two_sided_sum(x));
+        }
         let pts: Vec<[f32; 3]> = x.iter().map(|p| p.to_array()).collect();
         Ok(self.target.chamfer(&pts)?.two_sided_sum())
     }

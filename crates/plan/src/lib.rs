@@ -30,6 +30,7 @@ mod cost;
 mod error;
 mod model;
 mod mppi;
+mod nearest;
 pub mod render;
 mod task;
 

@@ -97,8 +97,9 @@ pub fn predict_batch(net: &ResidualNet, jobs: &[PredictJob<'_>]) -> Result<Vec<J
 /// Particles per group of jobs (at least one job per group). Four clouds of 150 points save
 /// 78 % of the instructions (per-operation overhead) that one group of all 15 MPPI candidates
 /// saves over one cloud per group, while the element-wise tensors of the default network stay
-/// below [`CANDLE_PARALLEL_ELEMENTS`] and 15 candidates still make 4 groups for 2 threads
-/// (`docs/plan.md`).
+/// below the 64 Ki elements from which candle 0.11 runs element-wise operations on its own
+/// spinning thread pool (which, from several rayon threads at once, cost more than it saved),
+/// and 15 candidates still make 4 groups for 2 threads (`docs/plan.md`).
 const GROUP_POINTS: usize = 600;
 
 /// Runs one group in lockstep: backbone steps, then one network call for all its clouds.
@@ -106,8 +107,10 @@ fn run_group<'a>(net: &ResidualNet, mut live: Vec<Live<'a>>) -> Result<Vec<(usiz
     let cfg = net.config();
     let dev = net.device();
     let mut done = Vec::with_capacity(live.len());
-    // Decoder outputs of the last `window` steps, rows = the live clouds' particles in order.
-    let mut window: Vec<Tensor> = Vec::with_capacity(cfg.window + 1);
+    let temporal = net.temporal_params()?;
+    // Decoder outputs `(rows, 3)` of the last `window` steps, flattened, rows = the live
+    // clouds' particles in order.
+    let mut window: Vec<Vec<f32>> = Vec::with_capacity(cfg.window + 1);
     let mut step = 0;
     while !live.is_empty() {
         live.iter_mut().for_each(|l| l.prepare(net, step));
@@ -127,12 +130,14 @@ fn run_group<'a>(net: &ResidualNet, mut live: Vec<Live<'a>>) -> Result<Vec<(usiz
         let pos = Tensor::from_vec(centred, (rows, 3), dev)?;
         window.push(
             net.decode(&feats, &pos, &st, [0, 1, 2, 3], Pass::Infer)?
-                .detach(),
+                .flatten_all()?
+                .to_vec1()?,
         );
         if window.len() > cfg.window {
             window.remove(0);
         }
-        let delta = aggregate_in_chunks(net, &window, rows)?;
+        let rows_of: Vec<&[f32]> = window.iter().map(Vec::as_slice).collect();
+        let delta = net.aggregate_rows(temporal.as_ref(), &rows_of, rows);
         let mut rest = delta.as_slice();
         for l in &mut live {
             let (head, tail) = rest.split_at(3 * l.n);
@@ -145,35 +150,6 @@ fn run_group<'a>(net: &ResidualNet, mut live: Vec<Live<'a>>) -> Result<Vec<(usiz
         step += 1;
     }
     Ok(done)
-}
-
-/// candle 0.11 runs element-wise operations on tensors of at least this many elements on its
-/// own spinning thread pool (`PAR_ELEMWISE_MIN`); from several rayon threads at once, or on a
-/// loaded machine, that costs more than it saves (measured: the temporal aggregator of
-/// 600-particle groups took 1.7-3.3x longer with it than without).
-const CANDLE_PARALLEL_ELEMENTS: usize = 64 * 1024;
-
-/// The temporal aggregator works on each particle alone, so it runs on row chunks small enough
-/// that none of its tensors (`window` tokens × the widest layer per particle) reaches
-/// [`CANDLE_PARALLEL_ELEMENTS`]; returns the residuals of all `rows` particles, flattened.
-fn aggregate_in_chunks(net: &ResidualNet, window: &[Tensor], rows: usize) -> Result<Vec<f32>> {
-    let cfg = net.config();
-    let per_row = cfg.window * (3 * cfg.temporal_dim).max(cfg.temporal_ff).max(3);
-    let chunk = ((CANDLE_PARALLEL_ELEMENTS - 1) / per_row).max(1);
-    let mut out = Vec::with_capacity(3 * rows);
-    for start in (0..rows).step_by(chunk) {
-        let len = chunk.min(rows - start);
-        let part: Vec<Tensor> = window
-            .iter()
-            .map(|w| w.narrow(0, start, len))
-            .collect::<candle_core::Result<_>>()?;
-        out.extend(
-            net.aggregate(&part, Pass::Infer)?
-                .flatten_all()?
-                .to_vec1::<f32>()?,
-        );
-    }
-    Ok(out)
 }
 
 fn check(job: &PredictJob<'_>) -> Result<()> {
@@ -209,7 +185,7 @@ fn check(job: &PredictJob<'_>) -> Result<()> {
 /// rows from the temporal window.
 fn retire(
     live: &mut Vec<Live<'_>>,
-    window: &mut [Tensor],
+    window: &mut [Vec<f32>],
     results: &mut Vec<(usize, JobResult)>,
     done: impl Fn(&Live<'_>) -> bool,
 ) -> Result<()> {
@@ -234,12 +210,11 @@ fn retire(
         row += n;
     }
     *live = kept;
-    if let Some(dev) = window.first().map(|w| w.device().clone()) {
-        let len = keep.len();
-        let ids = Tensor::from_vec(keep, len, &dev)?;
-        for w in window.iter_mut() {
-            *w = w.index_select(&ids, 0)?;
-        }
+    for w in window.iter_mut() {
+        *w = keep
+            .iter()
+            .flat_map(|&r| w[3 * r as usize..3 * r as usize + 3].iter().copied())
+            .collect();
     }
     Ok(())
 }

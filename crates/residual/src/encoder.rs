@@ -4,7 +4,7 @@
 use candle_core::Tensor;
 use candle_nn::{Linear, VarBuilder};
 
-use crate::nn::{Mlp, Norm, Pass, apply, linear, softmax};
+use crate::nn::{Mlp, Norm, Pass, affine, apply, linear, softmax};
 use crate::serialize::{CURVES, Order, Pooling, Structure};
 use crate::{EncoderKind, ModelConfig, Result};
 
@@ -48,8 +48,22 @@ impl Block {
             ],
             1,
         )?;
-        let h = (h + self.cpe_norm.forward(&apply(&self.cpe, &nb)?, pass)?)?;
+        let h = (h + self
+            .cpe_norm
+            .forward(&affine(&self.cpe, &nb, pass, false)?, pass)?)?;
         let x = self.n1.forward(&h, pass)?;
+        if pass == Pass::Infer {
+            // One fused pass from the projections to each point's output (`kernels/attention.rs`).
+            let o = crate::kernels::patch_attention(
+                &affine(&self.qkv, &x, pass, false)?,
+                &order.gather,
+                order.mask.as_ref(),
+                self.heads,
+                order.patch,
+            )?;
+            let h = (h + affine(&self.proj, &o, pass, false)?)?;
+            return Ok((&h + self.mlp.forward(&self.n2.forward(&h, pass)?, pass)?)?);
+        }
         let qkv = apply(&self.qkv, &x)?.index_select(&order.gather, 0)?;
         let (np, p, hd) = (order.patches, order.patch, c / self.heads);
         let qkv = qkv
@@ -60,19 +74,15 @@ impl Block {
         let k = qkv.get(1)?.contiguous()?;
         let v = qkv.get(2)?.contiguous()?;
         let mut s = q.matmul(&k.t()?)?;
-        let a = if pass == Pass::Infer {
-            crate::kernels::softmax(&s, order.mask.as_ref())?
-        } else {
-            if let Some(mask) = &order.mask {
-                s = s.broadcast_add(mask)?;
-            }
-            softmax(&s, pass)?
-        };
+        if let Some(mask) = &order.mask {
+            s = s.broadcast_add(mask)?;
+        }
+        let a = softmax(&s, pass)?;
         let o = a.matmul(&v)?;
         let o = o.permute((0, 2, 1, 3))?.reshape((np * p, c))?;
         let o = o.index_select(&order.inverse, 0)?;
         let h = (h + apply(&self.proj, &o)?)?;
-        Ok((&h + self.mlp.forward(&self.n2.forward(&h, pass)?)?)?)
+        Ok((&h + self.mlp.forward(&self.n2.forward(&h, pass)?, pass)?)?)
     }
 }
 
@@ -106,8 +116,8 @@ impl Up {
         pool: &Pooling,
         pass: Pass,
     ) -> Result<Tensor> {
-        let up = apply(&self.coarse, coarse)?.index_select(&pool.cluster, 0)?;
-        let h = (up + apply(&self.skip, skip)?)?;
+        let up = affine(&self.coarse, coarse, pass, false)?.index_select(&pool.cluster, 0)?;
+        let h = (up + affine(&self.skip, skip, pass, false)?)?;
         Ok(self.norm.forward(&h, pass)?.relu()?)
     }
 }
@@ -215,7 +225,7 @@ impl Encoder {
     ) -> Result<Tensor> {
         let mut h = self
             .embed_norm
-            .forward(&apply(&self.embed, x)?, pass)?
+            .forward(&affine(&self.embed, x, pass, false)?, pass)?
             .relu()?;
         let mut skips = Vec::new();
         let mut block = 0usize;
@@ -238,7 +248,10 @@ impl Encoder {
                 let d = &self.down[k - 1];
                 h = d
                     .norm
-                    .forward(&pool_mean(&apply(&d.proj, &input)?, pool)?, pass)?
+                    .forward(
+                        &pool_mean(&affine(&d.proj, &input, pass, false)?, pool)?,
+                        pass,
+                    )?
                     .relu()?;
             }
             h = match &self.stages {
@@ -249,7 +262,7 @@ impl Encoder {
                     }
                     h
                 }
-                Stages::Pointnet { sa, .. } => (&h + sa[k].forward(&h)?)?.relu()?,
+                Stages::Pointnet { sa, .. } => (&h + sa[k].forward(&h, pass)?)?.relu()?,
             };
             skips.push(h.clone());
         }
@@ -264,7 +277,7 @@ impl Encoder {
                     }
                     h
                 }
-                Stages::Pointnet { fp, .. } => (&h + fp[j].forward(&h)?)?.relu()?,
+                Stages::Pointnet { fp, .. } => (&h + fp[j].forward(&h, pass)?)?.relu()?,
             };
         }
         Ok(h)

@@ -9,7 +9,8 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use crate::encoder::Encoder;
-use crate::nn::{Mlp, Norm, Pass, apply, linear, sigmoid, softmax};
+use crate::kernels::{LayerParams, Mix, TemporalParams};
+use crate::nn::{Mlp, NORM_EPS, Norm, Pass, affine, apply, dense, linear, sigmoid, softmax};
 use crate::serialize::{CURVES, Structure};
 use crate::{Combine, ModelConfig, ResidualError, Result};
 
@@ -285,14 +286,72 @@ impl ResidualNet {
                 }
                 parts.push(f);
                 let x = Tensor::cat(&parts, 1)?;
-                let x = apply(&layers[0], &x)?;
-                let x = apply(&layers[1], &x)?.relu()?;
-                let x = apply(&layers[2], &x)?.relu()?;
-                apply(&layers[3], &x)?
+                let x = affine(&layers[0], &x, pass, false)?;
+                let x = affine(&layers[1], &x, pass, true)?;
+                let x = affine(&layers[2], &x, pass, true)?;
+                affine(&layers[3], &x, pass, false)?
             }
-            Head::Linear(l) => apply(l, &f)?,
+            Head::Linear(l) => affine(l, &f, pass, false)?,
         };
         Ok(out.tanh()?)
+    }
+
+    /// The temporal aggregator's parameters for [`crate::kernels::TemporalParams::apply`]
+    /// (inference), or `None` for a network without aggregator.
+    pub(crate) fn temporal_params(&self) -> Result<Option<TemporalParams>> {
+        let Some(t) = &self.temporal else {
+            return Ok(None);
+        };
+        let layers = t
+            .layers
+            .iter()
+            .map(|l| {
+                let (fc1, fc2) = l.ff.layers();
+                Ok(LayerParams {
+                    qkv: dense(&l.qkv)?,
+                    proj: dense(&l.proj)?,
+                    n1: l.n1.params()?,
+                    fc1: dense(fc1)?,
+                    fc2: dense(fc2)?,
+                    n2: l.n2.params()?,
+                })
+            })
+            .collect::<Result<Vec<_>>>()?;
+        Ok(Some(TemporalParams {
+            embed: dense(&t.embed)?,
+            pe: t.pe.flatten_all()?.to_vec1()?,
+            layers,
+            heads: t.heads,
+            delta: dense(&t.delta)?,
+            mix: match &t.gate {
+                Some(g) => Mix::Gate(dense(g)?),
+                None => Mix::Add,
+            },
+            window: self.cfg.window,
+            scale: self.cfg.residual_scale,
+            eps: NORM_EPS,
+        }))
+    }
+
+    /// [`Self::aggregate`] for inference on plain rows: the residual `(rows, 3)` flattened, m/s,
+    /// from the window of decoder outputs (oldest first, each `(rows, 3)` flattened), with the
+    /// parameters from [`Self::temporal_params`].
+    pub(crate) fn aggregate_rows(
+        &self,
+        params: Option<&TemporalParams>,
+        window: &[&[f32]],
+        rows: usize,
+    ) -> Vec<f32> {
+        match params {
+            Some(p) => p.apply(window, rows),
+            None => {
+                let s = self.cfg.residual_scale;
+                window.last().map_or_else(
+                    || vec![0.0; 3 * rows],
+                    |r| r.iter().map(|r| r * s).collect(),
+                )
+            }
+        }
     }
 
     /// The bounded residual `Δ (N, 3)` in m/s from the window of decoder outputs (oldest
@@ -342,7 +401,9 @@ impl ResidualNet {
             let x = layer
                 .n1
                 .forward(&(resid + apply(&layer.proj, &o)?)?, pass)?;
-            h = layer.n2.forward(&(&x + layer.ff.forward(&x)?)?, pass)?;
+            h = layer
+                .n2
+                .forward(&(&x + layer.ff.forward(&x, pass)?)?, pass)?;
         }
         let last = h.narrow(1, h.dim(1)? - 1, 1)?.squeeze(1)?;
         let delta = apply(&t.delta, &last)?.tanh()?;

@@ -11,10 +11,14 @@ use crate::Result;
 pub(crate) enum Pass {
     /// Ops with a backward pass (training, and the single-rollout paths).
     Grad,
-    /// Forward-only sequential kernels for LayerNorm and (masked) softmax (`kernels.rs`): one
-    /// pass over memory instead of about ten, for predictions that need no gradient.
+    /// Forward-only fused kernels (`kernels.rs`) for linear layers, patch attention, LayerNorm
+    /// and softmax, for predictions that need no gradient (the same function up to float
+    /// rounding).
     Infer,
 }
+
+/// Epsilon of every layer normalisation.
+pub(crate) const NORM_EPS: f32 = 1e-5;
 
 /// Layer normalisation over the last dimension, composed of differentiable ops.
 #[derive(Debug, Clone)]
@@ -31,17 +35,39 @@ impl Norm {
         })
     }
 
+    /// The parameters as plain vectors, for the inference kernels.
+    pub fn params(&self) -> Result<crate::kernels::NormParams> {
+        Ok(crate::kernels::NormParams {
+            gamma: self.gamma.to_vec1()?,
+            beta: self.beta.to_vec1()?,
+        })
+    }
+
     pub fn forward(&self, x: &Tensor, pass: Pass) -> Result<Tensor> {
         if pass == Pass::Infer {
-            return crate::kernels::layer_norm(x, &self.gamma, &self.beta, 1e-5);
+            return crate::kernels::layer_norm(x, &self.gamma, &self.beta, NORM_EPS);
         }
         Ok(candle_nn::ops::layer_norm_slow(
             x,
             &self.gamma,
             &self.beta,
-            1e-5,
+            NORM_EPS,
         )?)
     }
+}
+
+/// A linear layer's parameters as plain vectors, for the inference kernels.
+pub(crate) fn dense(l: &Linear) -> Result<crate::kernels::Dense> {
+    let (outputs, inputs) = l.weight().dims2()?;
+    Ok(crate::kernels::Dense {
+        w: l.weight().flatten_all()?.to_vec1()?,
+        b: match l.bias() {
+            Some(b) => b.to_vec1()?,
+            None => vec![0.0; outputs],
+        },
+        inputs,
+        outputs,
+    })
 }
 
 /// A linear layer `in → out` with bias.
@@ -65,6 +91,15 @@ pub(crate) fn apply(l: &Linear, x: &Tensor) -> Result<Tensor> {
     Ok(y.reshape(out)?)
 }
 
+/// [`apply`], then ReLU if `relu`; for `Pass::Infer` on rows `(n, in)` one fused kernel.
+pub(crate) fn affine(l: &Linear, x: &Tensor, pass: Pass, relu: bool) -> Result<Tensor> {
+    if let (Pass::Infer, 2, Some(b)) = (pass, x.rank(), l.bias()) {
+        return crate::kernels::linear(x, l.weight(), b, relu);
+    }
+    let y = apply(l, x)?;
+    Ok(if relu { y.relu()? } else { y })
+}
+
 /// Logistic sigmoid from differentiable primitives.
 pub(crate) fn sigmoid(x: &Tensor) -> Result<Tensor> {
     Ok((x.neg()?.exp()? + 1.0)?.recip()?)
@@ -73,7 +108,7 @@ pub(crate) fn sigmoid(x: &Tensor) -> Result<Tensor> {
 /// Softmax over the last dimension (with a backward pass unless `pass` is `Infer`).
 pub(crate) fn softmax(x: &Tensor, pass: Pass) -> Result<Tensor> {
     if pass == Pass::Infer {
-        return crate::kernels::softmax(x, None);
+        return crate::kernels::softmax(x);
     }
     Ok(candle_nn::ops::softmax(x, D::Minus1)?)
 }
@@ -93,7 +128,12 @@ impl Mlp {
         })
     }
 
-    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        apply(&self.b, &apply(&self.a, x)?.relu()?)
+    pub fn forward(&self, x: &Tensor, pass: Pass) -> Result<Tensor> {
+        affine(&self.b, &affine(&self.a, x, pass, true)?, pass, false)
+    }
+
+    /// The two layers.
+    pub fn layers(&self) -> (&Linear, &Linear) {
+        (&self.a, &self.b)
     }
 }

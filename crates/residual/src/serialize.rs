@@ -20,23 +20,38 @@ const BITS: u32 = 16;
 /// The four curves PTv3 uses.
 pub(crate) const CURVES: usize = 4;
 
+/// Spreads the low 16 bits of `v` to every third bit (bit `k` to bit `3k`).
+fn spread3(v: u32) -> u64 {
+    let mut x = u64::from(v & 0xFFFF);
+    x = (x | (x << 16)) & 0x0000_FF00_00FF;
+    x = (x | (x << 8)) & 0x00F0_0F00_F00F;
+    x = (x | (x << 4)) & 0x0C30_C30C_30C3;
+    x = (x | (x << 2)) & 0x2492_4924_9249;
+    x
+}
+
 /// Interleaves the low `BITS` bits of `a`, `b`, `c` (a in the most significant slot).
 fn interleave(a: u32, b: u32, c: u32) -> u64 {
-    let mut code = 0u64;
-    for bit in (0..BITS).rev() {
-        for v in [a, b, c] {
-            code = (code << 1) | u64::from((v >> bit) & 1);
-        }
-    }
-    code
+    (spread3(a) << 2) | (spread3(b) << 1) | spread3(c)
 }
 
 /// Hilbert index of a 3-D cell, after John Skilling's "transpose" formulation
 /// (AIP Conf. Proc. 707, 2004): undo excess work, Gray-encode, then interleave.
+///
+/// The undo loop runs from the top bit of `BITS` down. At a level above every coordinate's
+/// highest set bit it only exchanges whole coordinates (x0 with x1, then x0 with x2), so those
+/// levels are applied as one rotation of the three coordinates and the loop starts at the
+/// highest set bit: the same index in a third of the work for the small grids of one object.
 fn hilbert(cell: [u32; 3]) -> u64 {
-    let mut x = cell;
-    let m = 1u32 << (BITS - 1);
-    let mut q = m;
+    let mut x = cell.map(|v| v & ((1 << BITS) - 1));
+    // Coordinates are below 2^b; levels q = 2^e for e in [max(b, 1), BITS - 1] are the
+    // exchanging ones.
+    let b = 32 - (x[0] | x[1] | x[2]).leading_zeros();
+    for _ in 0..(BITS - b.max(1)) % 3 {
+        x = [x[2], x[0], x[1]];
+    }
+    let top = if b >= 2 { 1u32 << (b - 1) } else { 0 };
+    let mut q = top;
     while q > 1 {
         let p = q - 1;
         for i in 0..3 {
@@ -53,8 +68,9 @@ fn hilbert(cell: [u32; 3]) -> u64 {
     for i in 1..3 {
         x[i] ^= x[i - 1];
     }
+    // After the Gray encoding every coordinate is still below 2^b.
     let mut t = 0;
-    q = m;
+    q = top;
     while q > 1 {
         if x[2] & q != 0 {
             t ^= q - 1;
@@ -392,6 +408,9 @@ impl Structure {
 
 #[cfg(test)]
 mod tests {
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
     use super::*;
 
     #[test]
@@ -412,6 +431,79 @@ mod tests {
         for w in cells.windows(2) {
             let d: u32 = (0..3).map(|i| w[0].0[i].abs_diff(w[1].0[i])).sum();
             assert_eq!(d, 1, "{:?} -> {:?}", w[0].0, w[1].0);
+        }
+    }
+
+    /// Skilling's algorithm over all `BITS` levels, bit by bit: what `hilbert` and `interleave`
+    /// must equal.
+    fn hilbert_reference(cell: [u32; 3]) -> u64 {
+        let mut x = cell;
+        let m = 1u32 << (BITS - 1);
+        let mut q = m;
+        while q > 1 {
+            let p = q - 1;
+            for i in 0..3 {
+                if x[i] & q != 0 {
+                    x[0] ^= p;
+                } else {
+                    let t = (x[0] ^ x[i]) & p;
+                    x[0] ^= t;
+                    x[i] ^= t;
+                }
+            }
+            q >>= 1;
+        }
+        for i in 1..3 {
+            x[i] ^= x[i - 1];
+        }
+        let mut t = 0;
+        q = m;
+        while q > 1 {
+            if x[2] & q != 0 {
+                t ^= q - 1;
+            }
+            q >>= 1;
+        }
+        for v in &mut x {
+            *v ^= t;
+        }
+        interleave_reference(x[0], x[1], x[2])
+    }
+
+    fn interleave_reference(a: u32, b: u32, c: u32) -> u64 {
+        let mut code = 0u64;
+        for bit in (0..BITS).rev() {
+            for v in [a, b, c] {
+                code = (code << 1) | u64::from((v >> bit) & 1);
+            }
+        }
+        code
+    }
+
+    #[test]
+    fn fast_codes_equal_the_bit_by_bit_algorithm() {
+        let mut cells: Vec<[u32; 3]> = Vec::new();
+        for a in 0..24 {
+            for b in 0..24 {
+                for c in 0..24 {
+                    cells.push([a, b, c]);
+                }
+            }
+        }
+        let mut rng = ChaCha8Rng::seed_from_u64(6);
+        for bits in 1..=16 {
+            for _ in 0..300 {
+                cells.push(std::array::from_fn(|_| rng.random_range(0..1u32 << bits)));
+            }
+        }
+        cells.push([65535; 3]);
+        cells.push([0, 0, 65535]);
+        for c in cells {
+            assert_eq!(hilbert(c), hilbert_reference(c), "{c:?}");
+            assert_eq!(
+                interleave(c[0], c[1], c[2]),
+                interleave_reference(c[0], c[1], c[2])
+            );
         }
     }
 
