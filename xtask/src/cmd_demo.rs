@@ -86,6 +86,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
             generations: args.generations,
             samples: 8,
             seed: 0,
+            rescore: 0,
             protocol: ProtocolArg::Paper,
             bounds: BoundsArg::Reference,
             quiet: true,

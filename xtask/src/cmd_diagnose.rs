@@ -44,6 +44,11 @@ pub struct DiagnoseArgs {
     /// Bootstrap resamples over held-out episodes.
     #[arg(long, default_value_t = 2000)]
     pub resamples: usize,
+    /// Final selection of every refit: the optimiser's mean and the best candidates
+    /// of this many of the best generations are scored on all training episodes and the best
+    /// is kept (0: the best candidate by its own generation's sampled episodes).
+    #[arg(long, default_value_t = 3)]
+    pub rescore: usize,
     /// Window of each episode.
     #[arg(long, value_enum, default_value_t = ProtocolArg::Paper)]
     pub protocol: ProtocolArg,
@@ -78,6 +83,7 @@ fn config_from(args: &DiagnoseArgs) -> anyhow::Result<DiagnoseConfig> {
         samples: args.samples,
         seed: args.seed,
         resamples: args.resamples,
+        rescore: args.rescore,
         candidates,
         base: match &args.with {
             Some(list) => BaseEffect::parse_list(list)?,

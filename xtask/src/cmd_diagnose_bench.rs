@@ -65,6 +65,11 @@ pub struct DiagnoseBenchArgs {
     /// Seed of the data and of every fit (the `none` replicate uses seed + 1).
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// Final selection of every fit and refit: the optimiser's mean and the best candidates
+    /// of this many of the best generations are scored on all training episodes and the best
+    /// is kept (0: the best candidate by its own generation's sampled episodes).
+    #[arg(long, default_value_t = 3)]
+    pub rescore: usize,
     /// Most base effects per object (0: diagnose against the bare backbone).
     #[arg(long, default_value_t = 2)]
     pub max_base: usize,
@@ -278,6 +283,7 @@ fn fit_backbone(train: &[Scene], args: &DiagnoseBenchArgs) -> anyhow::Result<Spr
         samples: args.samples,
         sigma0: 0.2,
         seed: args.seed,
+        rescore: args.rescore,
     };
     let out = fit::fit(train, &family, &cfg, None, &mut |_| {})?;
     Ok(BackboneFamily::params(&out.best))
@@ -294,6 +300,7 @@ fn diagnose(
         generations: args.generations,
         samples: args.samples,
         seed: args.seed,
+        rescore: args.rescore,
         base: base.to_vec(),
         ..DiagnoseConfig::default()
     };
@@ -312,6 +319,7 @@ fn control_only(
         generations: args.generations,
         samples: args.samples,
         seed: args.seed,
+        rescore: args.rescore,
         base: base.to_vec(),
         candidates: Vec::new(),
         probe: false,

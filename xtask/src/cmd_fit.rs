@@ -33,6 +33,11 @@ pub struct FitArgs {
     /// Seed of the optimiser and the sampling.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// Final selection: score the optimiser's mean and the best candidates of this many of
+    /// the best generations on all training episodes and keep the best (0: the best candidate
+    /// by its own generation's sampled episodes, the reference's rule).
+    #[arg(long, default_value_t = 0)]
+    pub rescore: usize,
     /// Window of each training episode.
     #[arg(long, value_enum, default_value_t = ProtocolArg::Paper)]
     pub protocol: ProtocolArg,
@@ -79,6 +84,7 @@ pub fn run(args: &FitArgs) -> anyhow::Result<BackboneFile> {
         samples: args.samples,
         sigma0: 0.2,
         seed: args.seed,
+        rescore: args.rescore,
     };
     anyhow::ensure!(
         config.population >= 2 && config.samples >= 1,
@@ -103,6 +109,19 @@ pub fn run(args: &FitArgs) -> anyhow::Result<BackboneFile> {
     bar.finish();
     if let Some(g) = outcome.resumed_from {
         println!("resumed from generation {g} ({})", checkpoint.display());
+    }
+    if let Some(r) = &outcome.rescored {
+        let kept = &r.contenders[r.chosen];
+        println!(
+            "rescored {} contenders on all {} train episodes: kept {} (loss {:.3e} m²)",
+            r.contenders.len(),
+            scenes.len(),
+            kept.generation
+                .map_or("the optimiser's mean".to_string(), |g| format!(
+                    "generation {g}'s best"
+                )),
+            kept.loss
+        );
     }
     let params = BackboneFamily::params(&outcome.best);
     let generations_wall: f64 = outcome.history.iter().map(|g| g.wall_s).sum();

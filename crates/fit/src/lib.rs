@@ -9,6 +9,9 @@
 //! - Each generation draws `samples` scenes (seeded by the run's seed and the generation), and
 //!   every candidate of that generation is scored on the same scenes, so candidates compete on
 //!   equal terms.
+//! - The best candidate is kept; with [`FitConfig::rescore`] the final choice is made on the
+//!   loss over *all* scenes among the optimiser's mean and the best few generations' bests,
+//!   instead of on whichever sample a generation drew.
 //! - Rollouts run in parallel across (candidate, scene) pairs; losses are reduced in a fixed
 //!   order, so results do not depend on the thread count.
 //! - A rollout that diverges or returns non-finite values scores [`PENALTY`] instead of failing
@@ -21,4 +24,6 @@ mod family;
 mod run;
 
 pub use family::{BackboneFamily, Family};
-pub use run::{FitConfig, FitError, FitOutcome, Generation, PENALTY, fit, scene_loss};
+pub use run::{
+    Contender, FitConfig, FitError, FitOutcome, Generation, PENALTY, Rescore, fit, scene_loss,
+};

@@ -28,6 +28,13 @@ pub struct FitConfig {
     pub sigma0: f64,
     /// Seed of the optimiser and of the scene sampling.
     pub seed: u64,
+    /// Final selection. `0` (the reference's rule): the best candidate by the loss on its own
+    /// generation's sampled scenes, which favours whichever generation drew easy scenes.
+    /// `k > 0`: after the last generation the optimiser's mean and the best candidates of the
+    /// `k` generations with the lowest sampled loss are scored on *all* scenes, and the best of
+    /// those by that loss is kept (`k + 1` extra evaluations over every scene).
+    #[serde(default)]
+    pub rescore: usize,
 }
 
 impl Default for FitConfig {
@@ -38,6 +45,7 @@ impl Default for FitConfig {
             samples: 8,
             sigma0: 0.2,
             seed: 0,
+            rescore: 0,
         }
     }
 }
@@ -68,7 +76,8 @@ pub struct FitOutcome {
     pub names: Vec<String>,
     /// Best parameters seen (real units, integers rounded).
     pub best: Vec<f64>,
-    /// Their loss on the scenes of the generation they were found in, m².
+    /// Their loss, m²: on the scenes of the generation they were found in, or on all scenes
+    /// when [`FitConfig::rescore`] is set.
     pub best_loss: f64,
     /// Per-generation history.
     pub history: Vec<Generation>,
@@ -76,6 +85,30 @@ pub struct FitOutcome {
     pub evaluations: u64,
     /// Generation the run resumed from (`None`: started fresh).
     pub resumed_from: Option<usize>,
+    /// Best candidate of every generation (real units), in order; used by the rescoring.
+    #[serde(default)]
+    pub generation_best: Vec<Vec<f64>>,
+    /// The final rescoring on all scenes, when [`FitConfig::rescore`] asked for one.
+    #[serde(default)]
+    pub rescored: Option<Rescore>,
+}
+
+/// What the final rescoring on all scenes found (see [`FitConfig::rescore`]).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Rescore {
+    /// Contenders scored, in order: the optimiser's final mean, then generation bests.
+    pub contenders: Vec<Contender>,
+    /// Index into `contenders` of the one kept.
+    pub chosen: usize,
+}
+
+/// One contender of the final rescoring.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Contender {
+    /// Generation whose best candidate this is; `None` for the optimiser's final mean.
+    pub generation: Option<usize>,
+    /// Mean loss over all scenes, m².
+    pub loss: f64,
 }
 
 /// Why a fit failed.
@@ -148,6 +181,8 @@ pub fn fit<F: Family>(
             history: Vec::new(),
             evaluations: 0,
             resumed_from: None,
+            generation_best: Vec::new(),
+            rescored: None,
         };
         Ok((CmaEs::new(cfg)?, outcome))
     };
@@ -156,9 +191,11 @@ pub fn fit<F: Family>(
             let text = std::fs::read_to_string(path).map_err(|e| checkpoint_error(path, e))?;
             let ck: Checkpoint =
                 serde_json::from_str(&text).map_err(|e| checkpoint_error(path, e))?;
-            // Asking for more generations extends a run; anything else must match.
+            // Asking for more generations extends a run, and the final selection may change;
+            // anything else must match.
             let same = FitConfig {
                 generations: config.generations,
+                rescore: config.rescore,
                 ..ck.config.clone()
             };
             if ck.family != family.name() || same != *config || ck.scenes != scenes.len() {
@@ -211,6 +248,7 @@ pub fn fit<F: Family>(
             outcome.best_loss = best_loss;
             outcome.best = reals[best_c].clone();
         }
+        outcome.generation_best.push(reals[best_c].clone());
         let mut sorted = fitness.clone();
         sorted.sort_by(f64::total_cmp);
         outcome.evaluations += fitness.len() as u64;
@@ -236,5 +274,61 @@ pub fn fit<F: Family>(
         }
         on_generation(&generation);
     }
+    if config.rescore > 0 && outcome.rescored.is_none() {
+        rescore(scenes, family, params, &es, config.rescore, &mut outcome)?;
+    }
     Ok(outcome)
+}
+
+/// Scores the optimiser's mean and the best candidates of the `k` best generations on every
+/// scene and keeps the best (ties: the earlier contender, so the mean wins an exact tie).
+fn rescore<F: Family>(
+    scenes: &[Scene],
+    family: &F,
+    params: &cmaes::Parameters,
+    es: &CmaEs,
+    k: usize,
+    outcome: &mut FitOutcome,
+) -> Result<(), FitError> {
+    let mut order: Vec<usize> = (0..outcome.history.len().min(outcome.generation_best.len()))
+        .filter(|&g| outcome.history[g].best_loss < PENALTY)
+        .collect();
+    order.sort_by(|&a, &b| {
+        outcome.history[a]
+            .best_loss
+            .total_cmp(&outcome.history[b].best_loss)
+            .then(a.cmp(&b))
+    });
+    order.truncate(k);
+    let mut reals = vec![params.to_real(&es.mean())?];
+    let mut labels = vec![None];
+    for g in order {
+        reals.push(outcome.generation_best[g].clone());
+        labels.push(Some(g));
+    }
+    let jobs: Vec<(usize, usize)> = (0..reals.len())
+        .flat_map(|c| (0..scenes.len()).map(move |s| (c, s)))
+        .collect();
+    let losses: Vec<f64> = jobs
+        .par_iter()
+        .map(|(c, s)| scene_loss(family, &reals[*c], &scenes[*s]))
+        .collect();
+    let contenders: Vec<Contender> = losses
+        .chunks(scenes.len())
+        .zip(labels)
+        .map(|(l, generation)| Contender {
+            generation,
+            loss: l.iter().sum::<f64>() / scenes.len() as f64,
+        })
+        .collect();
+    let chosen =
+        contenders.iter().enumerate().fold(
+            0,
+            |b, (i, c)| if c.loss < contenders[b].loss { i } else { b },
+        );
+    outcome.evaluations += contenders.len() as u64;
+    outcome.best = reals[chosen].clone();
+    outcome.best_loss = contenders[chosen].loss;
+    outcome.rescored = Some(Rescore { contenders, chosen });
+    Ok(())
 }

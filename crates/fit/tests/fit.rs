@@ -71,6 +71,7 @@ fn fit_reduces_loss_towards_the_truth() {
         samples: 2,
         sigma0: 0.2,
         seed: 3,
+        rescore: 0,
     };
     let mut seen = 0;
     let out = fit(&scenes, &family, &config, None, &mut |_| seen += 1).unwrap();
@@ -95,6 +96,7 @@ fn resumed_fit_equals_uninterrupted() {
         samples: 2,
         sigma0: 0.2,
         seed: 11,
+        rescore: 2,
     };
     let whole = fit(&scenes, &family, &config, None, &mut |_| {}).unwrap();
 
@@ -117,4 +119,50 @@ fn resumed_fit_equals_uninterrupted() {
     }
     assert_eq!(resumed, whole);
     std::fs::remove_file(&ck).ok();
+}
+
+#[test]
+fn rescoring_keeps_the_best_contender_on_all_scenes() {
+    let (_, scenes) = synthetic_scenes(&truth(), 4);
+    let family = BackboneFamily::new(springs::REFERENCE_BOUNDS).unwrap();
+    let full = |real: &[f64]| {
+        scenes
+            .iter()
+            .map(|s| scene_loss(&family, real, s))
+            .sum::<f64>()
+            / scenes.len() as f64
+    };
+    // One sampled scene per generation: the sampled losses are a poor guide.
+    let mut config = FitConfig {
+        population: 6,
+        generations: 6,
+        samples: 1,
+        sigma0: 0.2,
+        seed: 5,
+        rescore: 0,
+    };
+    let mut plain = fit(&scenes, &family, &config, None, &mut |_| {}).unwrap();
+    assert!(plain.rescored.is_none());
+    config.rescore = 3;
+    let mut rescored = fit(&scenes, &family, &config, None, &mut |_| {}).unwrap();
+    // Same search, only the final choice differs.
+    for g in plain.history.iter_mut().chain(rescored.history.iter_mut()) {
+        g.wall_s = 0.0;
+    }
+    assert_eq!(plain.history, rescored.history);
+    let r = rescored.rescored.as_ref().unwrap();
+    assert_eq!(r.contenders.len(), 4);
+    assert_eq!(r.contenders[0].generation, None);
+    assert!(r.contenders[1..].iter().all(|c| c.generation.is_some()));
+    // The kept parameters' reported loss is their loss over every scene, and the smallest.
+    assert_eq!(rescored.best_loss, full(&rescored.best));
+    assert!(
+        r.contenders
+            .iter()
+            .all(|c| c.loss >= r.contenders[r.chosen].loss)
+    );
+    // The plain rule's pick is one of the contenders, so rescoring can only do better on the
+    // full training loss.
+    assert!(full(&rescored.best) <= full(&plain.best));
+    assert_eq!(rescored.evaluations, plain.evaluations + 4);
 }

@@ -49,7 +49,11 @@ fn mde_cm(family: &CandidateFamily, real: &[f64], val: &[Scene]) -> f64 {
 #[test]
 fn without_base_effects_the_control_is_the_plain_backbone_refit() {
     let (train, val) = (scenes(dataset::Split::Train), scenes(dataset::Split::Val));
-    let cfg = tiny(Vec::new());
+    // With the final rescoring on, so that it too is shown to be the fit crate's.
+    let cfg = DiagnoseConfig {
+        rescore: 2,
+        ..tiny(Vec::new())
+    };
     let d = gap::diagnose(&train, &val, &backbone(), &cfg, &mut |_| {}).unwrap();
     // The same refit done by hand with the plain family (stiffness, damping, friction only).
     let frame = gap::material_frame(&train).unwrap();
@@ -61,6 +65,7 @@ fn without_base_effects_the_control_is_the_plain_backbone_refit() {
         samples: cfg.samples,
         sigma0: cfg.sigma0,
         seed: cfg.seed,
+        rescore: cfg.rescore,
     };
     let out = fit::fit(&train, &plain, &fit_cfg, None, &mut |_| {}).unwrap();
     let fitted: Vec<f64> = d.control.fitted.iter().map(|(_, v)| *v).collect();
