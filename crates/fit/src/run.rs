@@ -224,13 +224,7 @@ pub fn fit<F: Family>(
             .iter()
             .map(|u| params.to_real(u))
             .collect::<Result<Vec<_>, _>>()?;
-        let jobs: Vec<(usize, usize)> = (0..reals.len())
-            .flat_map(|c| picked.iter().map(move |s| (c, *s)))
-            .collect();
-        let losses: Vec<f64> = jobs
-            .par_iter()
-            .map(|(c, s)| scene_loss(family, &reals[*c], &scenes[*s]))
-            .collect();
+        let losses = losses_on(family, &reals, scenes, &picked);
         let fitness: Vec<f64> = losses
             .chunks(samples)
             .map(|l| l.iter().sum::<f64>() / samples as f64)
@@ -280,6 +274,22 @@ pub fn fit<F: Family>(
     Ok(outcome)
 }
 
+/// Loss of every candidate on every picked scene, candidate-major, computed in parallel and
+/// returned in a fixed order (so reductions do not depend on the thread count).
+fn losses_on<F: Family>(
+    family: &F,
+    reals: &[Vec<f64>],
+    scenes: &[Scene],
+    picked: &[usize],
+) -> Vec<f64> {
+    let jobs: Vec<(usize, usize)> = (0..reals.len())
+        .flat_map(|c| picked.iter().map(move |s| (c, *s)))
+        .collect();
+    jobs.par_iter()
+        .map(|(c, s)| scene_loss(family, &reals[*c], &scenes[*s]))
+        .collect()
+}
+
 /// Scores the optimiser's mean and the best candidates of the `k` best generations on every
 /// scene and keeps the best (ties: the earlier contender, so the mean wins an exact tie).
 fn rescore<F: Family>(
@@ -306,13 +316,8 @@ fn rescore<F: Family>(
         reals.push(outcome.generation_best[g].clone());
         labels.push(Some(g));
     }
-    let jobs: Vec<(usize, usize)> = (0..reals.len())
-        .flat_map(|c| (0..scenes.len()).map(move |s| (c, s)))
-        .collect();
-    let losses: Vec<f64> = jobs
-        .par_iter()
-        .map(|(c, s)| scene_loss(family, &reals[*c], &scenes[*s]))
-        .collect();
+    let all: Vec<usize> = (0..scenes.len()).collect();
+    let losses = losses_on(family, &reals, scenes, &all);
     let contenders: Vec<Contender> = losses
         .chunks(scenes.len())
         .zip(labels)
