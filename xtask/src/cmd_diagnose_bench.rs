@@ -30,6 +30,7 @@ use springs::SpringParams;
 use world::{EffectKind, Effects, ObjectKind};
 
 use super::{scenes, write_report};
+use crate::cmd_fit::BoundsArg;
 use crate::report::write_json;
 
 /// Which cases run on which object.
@@ -135,6 +136,9 @@ pub struct DiagnoseBenchArgs {
     /// Most base effects per object (0: diagnose against the bare backbone).
     #[arg(long, default_value_t = 2)]
     pub max_base: usize,
+    /// Search bounds of each object's backbone fit (the diagnosis refits around the result).
+    #[arg(long, value_enum, default_value_t = BoundsArg::Reference)]
+    pub bounds: BoundsArg,
     /// Strength ladder: multiples of the world's default strength tried in order
     /// (comma-separated; `1` keeps the defaults).
     #[arg(long, default_value = "1,2,4,8")]
@@ -239,6 +243,8 @@ pub struct BenchCase {
 /// Bench summary.
 #[derive(Serialize, Debug)]
 pub struct BenchSummary {
+    /// Search bounds of the backbone fits (`reference` or `paper`).
+    pub bounds: String,
     /// Share of in-library cases (target strength reached) with the right verdict.
     pub in_library_accuracy: f64,
     /// Same over every in-library case, target reached or not.
@@ -338,7 +344,7 @@ fn split(data: &Dataset) -> anyhow::Result<(Vec<Scene>, Vec<Scene>)> {
 }
 
 fn fit_backbone(train: &[Scene], args: &DiagnoseBenchArgs) -> anyhow::Result<SpringParams> {
-    let family = BackboneFamily::new(springs::REFERENCE_BOUNDS)?;
+    let family = BackboneFamily::new(args.bounds.bounds())?;
     let cfg = FitConfig {
         population: 8,
         generations: args.fit_generations,
@@ -705,6 +711,7 @@ pub fn run_bench(args: &DiagnoseBenchArgs) -> anyhow::Result<BenchSummary> {
         println!();
     }
     let summary = BenchSummary {
+        bounds: args.bounds.name().to_string(),
         in_library_accuracy: share(&lib_reached),
         in_library_accuracy_all: share(&lib_all),
         in_library_cases: [lib_reached.len(), lib_all.len()],

@@ -58,6 +58,24 @@ pub enum BoundsArg {
     Paper,
 }
 
+impl BoundsArg {
+    /// The parameter bounds this choice names.
+    pub fn bounds(self) -> springs::ParamBounds {
+        match self {
+            BoundsArg::Reference => springs::REFERENCE_BOUNDS,
+            BoundsArg::Paper => springs::PAPER_BOUNDS,
+        }
+    }
+
+    /// The choice as written on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            BoundsArg::Reference => "reference",
+            BoundsArg::Paper => "paper",
+        }
+    }
+}
+
 /// Runs the fit and writes `<run>/backbone.json`.
 pub fn run(args: &FitArgs) -> anyhow::Result<BackboneFile> {
     let t0 = Instant::now();
@@ -73,11 +91,7 @@ pub fn run(args: &FitArgs) -> anyhow::Result<BackboneFile> {
     .collect();
     std::fs::create_dir_all(&args.run)
         .with_context(|| format!("creating {}", args.run.display()))?;
-    let bounds = match args.bounds {
-        BoundsArg::Reference => springs::REFERENCE_BOUNDS,
-        BoundsArg::Paper => springs::PAPER_BOUNDS,
-    };
-    let family = BackboneFamily::new(bounds)?;
+    let family = BackboneFamily::new(args.bounds.bounds())?;
     let config = FitConfig {
         population: args.population,
         generations: args.generations,

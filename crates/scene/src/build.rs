@@ -4,6 +4,8 @@ use springs::{Actions, Backbone, BackboneOptions, SimConfig, SpringParams, State
 
 use crate::{SceneError, Window};
 
+const FILL_FACTOR: f32 = 1.5;
+
 /// How to turn tracked points into a simulated object.
 #[derive(Clone, Debug, PartialEq)]
 pub struct SceneConfig {
@@ -13,6 +15,10 @@ pub struct SceneConfig {
     pub chain_hidden_per_gap: usize,
     /// Fill `volume` datasets with interior particles (the paper's internal points).
     pub fill_volume: bool,
+    /// Interior grid spacing as a multiple of the tracked surface's median spacing. The
+    /// interior carries the shape and the mass; it need not be as fine as the tracked surface,
+    /// and each halving of it multiplies the interior particle count by 8.
+    pub fill_spacing_factor: f32,
     /// Substep selection used by [`Scene::sim_config`].
     pub substep: Substep,
 }
@@ -22,6 +28,7 @@ impl Default for SceneConfig {
         SceneConfig {
             chain_hidden_per_gap: 4,
             fill_volume: true,
+            fill_spacing_factor: FILL_FACTOR,
             substep: Substep::AUTO,
         }
     }
@@ -82,7 +89,7 @@ impl Scene {
                 v.extend(hv);
             }
             Structure::Volume if config.fill_volume => {
-                let spacing = median_spacing(&x);
+                let spacing = config.fill_spacing_factor * median_spacing(&x);
                 let interior = springs::fill_interior(&x, spacing)?;
                 let iv = interior
                     .iter()

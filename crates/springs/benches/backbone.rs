@@ -1,5 +1,6 @@
 //! Backbone timings: substep and model step on a 1000-particle lattice, a model step of a
-//! 1000-particle rope (automatic vs the reference's fixed substep), and batched rollouts.
+//! 1000-particle rope (automatic vs the reference's fixed substep), batched rollouts, and the
+//! interior fill of a sampled surface.
 //! Run: `cargo bench -p pgrd-springs` (set RAYON_NUM_THREADS to compare thread counts).
 #![allow(missing_docs)] // criterion_group! generates an undocumented pub fn
 
@@ -308,5 +309,26 @@ fn bench(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, bench);
+/// Interior fill of a 0.1 m-radius sphere sampled at 300 surface points (≈ 2 cm apart, the
+/// density of a tracked plush toy), at a 2 cm grid.
+fn bench_fill(c: &mut Criterion) {
+    let n = 300;
+    let surface: Vec<Vec3> = (0..n)
+        .map(|i| {
+            let z = 1.0 - 2.0 * (i as f32 + 0.5) / n as f32;
+            let rho = (1.0 - z * z).sqrt();
+            let phi = i as f32 * 2.399_963;
+            0.1 * Vec3::new(rho * phi.cos(), rho * phi.sin(), z)
+        })
+        .collect();
+    let name = format!(
+        "fill_interior/sphere_300_surface_points_threads_{}",
+        rayon::current_num_threads()
+    );
+    c.bench_function(&name, |b| {
+        b.iter(|| springs::fill_interior(black_box(&surface), 0.02).expect("fill"))
+    });
+}
+
+criterion_group!(benches, bench, bench_fill);
 criterion_main!(benches);

@@ -4,23 +4,28 @@ use glam::Vec3;
 use kiddo::SquaredEuclidean;
 use kiddo::immutable::float::kdtree::ImmutableKdTree;
 
+use rayon::prelude::*;
+
 use crate::SimError;
 
-/// Largest voxel grid [`fill_interior`] will scan.
-const MAX_CELLS: u64 = 20_000_000;
+/// Most grid points [`fill_interior`] will test (each costs up to 26 ray marches).
+const MAX_CELLS: u64 = 1_000_000;
 
 /// Fill the inside of a closed-ish surface point cloud with particles on a cubic grid of
 /// `spacing_m` (m). Deterministic; output in grid order (z, then y, then x).
 ///
-/// Method (docs/physics.md): voxels of edge `v = max(spacing_m, 1.5 × median nearest-neighbour
-/// distance of the surface)` that hold a surface point form a wall; a flood fill through the
-/// other voxels (6-connected) from outside the bounding box marks the exterior; grid centres in
-/// voxels that are neither wall nor exterior are inside. Centres closer than `spacing_m / 4` to
-/// a surface point are dropped so fill particles do not sit on top of surface particles.
+/// Method (docs/physics.md): a grid point is inside when every one of 26 rays from it (the
+/// directions to the neighbours of a cube) is blocked by the surface. A ray is blocked when a
+/// surface point lies within `min(r, t)` of the ray at some distance `t` along it, with
+/// `r = 2 × median nearest-neighbour distance of the surface`: a tube that closes the gaps of a
+/// sparsely sampled surface, narrowed to a 45° cone near the origin so that a point just outside
+/// the surface is not blocked by the surface points beside it. Inside points closer than
+/// `spacing_m / 2` to a surface point are dropped so fill particles do not sit on top of
+/// surface particles.
 ///
-/// Limits: a gap in the surface wider than about one voxel lets the flood in, and the region
-/// behind it stays empty (open surfaces are never filled); parts thinner than about two voxels
-/// get no interior particles; the layer of wall voxels (up to ~v deep) stays empty.
+/// Limits: an opening wider than about `2r` lets rays out, so open surfaces (a tube without
+/// caps) stay empty; a pocket enclosed in every direction (rare outside) is filled. Work is
+/// O(grid points × 26 × ray length / r) nearest-neighbour queries, run on the rayon pool.
 ///
 /// ```
 /// use glam::Vec3;
@@ -63,76 +68,78 @@ pub fn fill_interior(surface_points: &[Vec3], spacing_m: f32) -> Result<Vec<Vec3
         .iter()
         .copied()
         .fold(Vec3::NEG_INFINITY, Vec3::max);
-
-    // Output grid.
     let dims: [usize; 3] =
         std::array::from_fn(|a| (((hi[a] - lo[a]) / spacing_m).ceil() as usize).max(1));
     check_cells(dims)?;
-    // Voxel grid of the flood fill, with at least one empty voxel of padding on every side so
-    // that the exterior is connected around the object.
-    let v = spacing_m.max(1.5 * median_nn_distance(surface_points, &tree));
-    let origin = lo - Vec3::splat(v);
-    let vd: [usize; 3] = std::array::from_fn(|a| ((hi[a] - lo[a]) / v).ceil() as usize + 3);
-    check_cells(vd)?;
-    let voxel = |p: Vec3| -> [usize; 3] {
-        std::array::from_fn(|a| (((p[a] - origin[a]) / v).floor().max(0.0) as usize).min(vd[a] - 1))
+    let r = 2.0 * median_nn_distance(surface_points, &tree);
+    if r <= 0.0 {
+        return Ok(Vec::new());
+    }
+    let rays = Rays {
+        tree: &tree,
+        lo: lo - Vec3::splat(r),
+        hi: hi + Vec3::splat(r),
+        r,
+        step: 0.5 * r,
     };
-    let idx = |c: [usize; 3]| (c[2] * vd[1] + c[1]) * vd[0] + c[0];
-    const WALL: u8 = 1;
-    const OUTSIDE: u8 = 2;
-    let mut state = vec![0u8; vd[0] * vd[1] * vd[2]];
-    for &p in surface_points {
-        state[idx(voxel(p))] = WALL;
-    }
-    // Flood the exterior from every non-wall voxel of the boundary layer.
-    let mut stack: Vec<[usize; 3]> = Vec::new();
-    for k in 0..vd[2] {
-        for j in 0..vd[1] {
-            for i in 0..vd[0] {
-                let border = i == 0
-                    || j == 0
-                    || k == 0
-                    || i == vd[0] - 1
-                    || j == vd[1] - 1
-                    || k == vd[2] - 1;
-                if border && state[idx([i, j, k])] == 0 {
-                    state[idx([i, j, k])] = OUTSIDE;
-                    stack.push([i, j, k]);
-                }
+    let min_d2 = 0.25 * spacing_m * spacing_m;
+    let grid: Vec<Vec3> = (0..dims[2])
+        .flat_map(|k| (0..dims[1]).flat_map(move |j| (0..dims[0]).map(move |i| [i, j, k])))
+        .map(|[i, j, k]| lo + spacing_m * (Vec3::new(i as f32, j as f32, k as f32) + 0.5))
+        .collect();
+    // Each point's test is independent and `collect` keeps grid order, so the output does not
+    // depend on the thread count.
+    Ok(grid
+        .into_par_iter()
+        .filter(|q| {
+            tree.nearest_one::<SquaredEuclidean>(&q.to_array()).distance >= min_d2
+                && directions().all(|d| rays.blocked(*q, d))
+        })
+        .collect())
+}
+
+/// The 26 unit directions from a cube's centre to its faces, edges and corners.
+fn directions() -> impl Iterator<Item = Vec3> {
+    (-1i8..=1)
+        .flat_map(|i| (-1i8..=1).flat_map(move |j| (-1i8..=1).map(move |k| [i, j, k])))
+        .filter(|c| *c != [0, 0, 0])
+        .map(|[i, j, k]| Vec3::new(f32::from(i), f32::from(j), f32::from(k)).normalize())
+}
+
+/// Ray marching against the surface points.
+struct Rays<'a> {
+    tree: &'a ImmutableKdTree<f32, u32, 3, 32>,
+    /// Box the rays march in (the surface's bounds padded by `r`), m.
+    lo: Vec3,
+    hi: Vec3,
+    /// Tube radius, m.
+    r: f32,
+    /// March step, m (half the tube radius, so no surface point within 0.97 r of the line is
+    /// stepped over).
+    step: f32,
+}
+
+impl Rays<'_> {
+    /// Whether the ray from `origin` along the unit vector `dir` meets the surface before it
+    /// leaves the box.
+    fn blocked(&self, origin: Vec3, dir: Vec3) -> bool {
+        let mut t = self.step;
+        loop {
+            let c = origin + t * dir;
+            if c.cmplt(self.lo).any() || c.cmpgt(self.hi).any() {
+                return false;
             }
+            let radius = self.r.min(t);
+            let d2 = self
+                .tree
+                .nearest_one::<SquaredEuclidean>(&c.to_array())
+                .distance;
+            if d2 <= radius * radius {
+                return true;
+            }
+            t += self.step;
         }
     }
-    while let Some(c) = stack.pop() {
-        for a in 0..3 {
-            for n in [c[a].checked_sub(1), Some(c[a] + 1).filter(|&u| u < vd[a])]
-                .into_iter()
-                .flatten()
-            {
-                let mut m = c;
-                m[a] = n;
-                let s = &mut state[idx(m)];
-                if *s == 0 {
-                    *s = OUTSIDE;
-                    stack.push(m);
-                }
-            }
-        }
-    }
-    let min_d2 = 0.0625 * spacing_m * spacing_m;
-    let mut out = Vec::new();
-    for k in 0..dims[2] {
-        for j in 0..dims[1] {
-            for i in 0..dims[0] {
-                let q = lo + spacing_m * (Vec3::new(i as f32, j as f32, k as f32) + 0.5);
-                if state[idx(voxel(q))] == 0
-                    && tree.nearest_one::<SquaredEuclidean>(&q.to_array()).distance >= min_d2
-                {
-                    out.push(q);
-                }
-            }
-        }
-    }
-    Ok(out)
 }
 
 fn check_cells(dims: [usize; 3]) -> Result<(), SimError> {

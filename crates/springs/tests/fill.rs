@@ -50,7 +50,9 @@ fn sphere_is_filled_inside_only() {
 
 #[test]
 fn open_surfaces_are_not_filled() {
-    // A tube along z without caps: rays along +-z escape, so nothing is inside.
+    // A tube along z without caps: rays along +-z escape, so its axis region stays empty. Only
+    // points within the ray tube's radius (2 x the 5 mm point spacing) of the wall can be
+    // blocked in every direction.
     let mut tube = Vec::new();
     for k in 0..40 {
         for a in 0..60 {
@@ -62,7 +64,10 @@ fn open_surfaces_are_not_filled() {
             ));
         }
     }
-    assert!(fill_interior(&tube, 0.01).unwrap().is_empty());
+    let open = fill_interior(&tube, 0.01).unwrap();
+    for p in &open {
+        assert!(p.truncate().length() > 0.05 - 0.0105, "{p} is off the wall");
+    }
     // Closing it with two caps makes it fillable.
     let mut closed = tube.clone();
     for z in [0.0, 0.195] {
@@ -75,7 +80,17 @@ fn open_surfaces_are_not_filled() {
             }
         }
     }
-    assert!(fill_interior(&closed, 0.01).unwrap().len() > 50);
+    let filled = fill_interior(&closed, 0.01).unwrap();
+    // The tube's volume holds ~1530 grid points of 1 cm; those within 5 mm of the surface
+    // are dropped.
+    assert!(filled.len() > 900, "{} filled", filled.len());
+    assert!(open.len() * 10 < filled.len());
+    for p in &filled {
+        assert!(
+            p.truncate().length() < 0.05 && p.z > 0.0 && p.z < 0.195,
+            "{p} outside"
+        );
+    }
 }
 
 #[test]
