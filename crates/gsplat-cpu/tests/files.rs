@@ -11,10 +11,41 @@ use gsplat::{
     write_png,
 };
 
-fn temp(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("pgrd-gsplat-test-{}", std::process::id()));
+/// A file path in a directory of its own under the system temp dir; the directory is removed
+/// when this is dropped (kept when the test panics, for a look).
+struct TempFile {
+    dir: PathBuf,
+    path: PathBuf,
+}
+
+impl std::ops::Deref for TempFile {
+    type Target = std::path::Path;
+    fn deref(&self) -> &std::path::Path {
+        &self.path
+    }
+}
+
+impl AsRef<std::path::Path> for TempFile {
+    fn as_ref(&self) -> &std::path::Path {
+        &self.path
+    }
+}
+
+impl Drop for TempFile {
+    fn drop(&mut self) {
+        if !std::thread::panicking() {
+            let _ = std::fs::remove_dir_all(&self.dir);
+        }
+    }
+}
+
+fn temp(name: &str) -> TempFile {
+    let dir = std::env::temp_dir().join(format!("pgrd-gsplat-test-{}-{name}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
-    dir.join(name)
+    TempFile {
+        path: dir.join(name),
+        dir,
+    }
 }
 
 const C0: f64 = 0.282_094_791_773_878_14; // 1 / (2 sqrt(pi))
