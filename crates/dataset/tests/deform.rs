@@ -6,42 +6,16 @@ use std::path::{Path, PathBuf};
 use dataset::import::deform;
 use dataset::{Dataset, Split, Structure};
 
+mod common;
+
 fn deform_dir(k: u32) -> Option<PathBuf> {
     let d =
         Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("../../../shared/data/deform/DLO{k}"));
     d.is_dir().then_some(d)
 }
 
-/// A directory under the system temp dir, removed (with its contents) when dropped, so test
-/// runs leave nothing behind. A failing test panics before the drop and keeps it for a look.
-struct TempDir(PathBuf);
-
-impl std::ops::Deref for TempDir {
-    type Target = std::path::Path;
-    fn deref(&self) -> &std::path::Path {
-        &self.0
-    }
-}
-
-impl AsRef<std::path::Path> for TempDir {
-    fn as_ref(&self) -> &std::path::Path {
-        &self.0
-    }
-}
-
-impl Drop for TempDir {
-    fn drop(&mut self) {
-        if !std::thread::panicking() {
-            let _ = std::fs::remove_dir_all(&self.0);
-        }
-    }
-}
-
-fn tmpdir(name: &str) -> TempDir {
-    let d = std::env::temp_dir().join(format!("pgrd-deform-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    TempDir(d)
+fn tmpdir(name: &str) -> common::TempDir {
+    common::tmpdir("deform", name)
 }
 
 #[test]

@@ -1,41 +1,13 @@
 //! The dataset contract: round trips, and every malformed input gives an error naming the file.
 
-use std::path::PathBuf;
-
 use dataset::{Dataset, DatasetMeta, DatasetWriter, Episode, Error, Manipulation, Split};
 use glam::Vec3;
 use proptest::prelude::*;
 
-/// A directory under the system temp dir, removed (with its contents) when dropped, so test
-/// runs leave nothing behind. A failing test panics before the drop and keeps it for a look.
-struct TempDir(PathBuf);
+mod common;
 
-impl std::ops::Deref for TempDir {
-    type Target = std::path::Path;
-    fn deref(&self) -> &std::path::Path {
-        &self.0
-    }
-}
-
-impl AsRef<std::path::Path> for TempDir {
-    fn as_ref(&self) -> &std::path::Path {
-        &self.0
-    }
-}
-
-impl Drop for TempDir {
-    fn drop(&mut self) {
-        if !std::thread::panicking() {
-            let _ = std::fs::remove_dir_all(&self.0);
-        }
-    }
-}
-
-fn tmpdir(name: &str) -> TempDir {
-    let d = std::env::temp_dir().join(format!("pgrd-dataset-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    TempDir(d)
+fn tmpdir(name: &str) -> common::TempDir {
+    common::tmpdir("dataset", name)
 }
 
 fn small_episode(t: usize, n: usize, g: usize, seed: f32) -> Episode {
