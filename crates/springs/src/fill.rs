@@ -23,8 +23,9 @@ const MAX_CELLS: u64 = 1_000_000;
 /// `spacing_m / 2` to a surface point are dropped so fill particles do not sit on top of
 /// surface particles.
 ///
-/// Limits: an opening wider than about `2r` lets rays out, so open surfaces (a tube without
-/// caps) stay empty; a pocket enclosed in every direction (rare outside) is filled. Work is
+/// Limits: an opening wider than about `2r` lets rays out, so an open surface (a tube without
+/// caps) stays empty except for a skin up to `r` thick along its wall, where the rays running
+/// beside the wall count as blocked; an outside pocket enclosed in every direction is filled. Work is
 /// O(grid points × 26 × ray length / r) nearest-neighbour queries, run on the rayon pool.
 ///
 /// ```
