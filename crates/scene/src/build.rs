@@ -4,6 +4,8 @@ use springs::{Actions, Backbone, BackboneOptions, SimConfig, SpringParams, State
 
 use crate::{SceneError, Window};
 
+/// Default [`SceneConfig::fill_spacing_factor`], chosen on the teddy and sloth fixtures
+/// (docs/pipelines.md).
 const FILL_FACTOR: f32 = 1.5;
 
 /// How to turn tracked points into a simulated object.
