@@ -7,8 +7,8 @@ use anyhow::Context;
 use dataset::{Dataset, Split};
 use indicatif::{ProgressBar, ProgressStyle};
 use residual::{
-    Combine, EncoderKind, ModelConfig, ResidualError, ResidualKind, ResidualNet, StartFrom,
-    TrainConfig, TrainLoss, TrainSet, Trainer, clearly_better,
+    Combine, EncoderKind, ModelConfig, ResidualError, ResidualKind, ResidualNet, SimGradient,
+    StartFrom, TrainConfig, TrainLoss, TrainSet, Trainer, clearly_better,
 };
 use scene::SceneConfig;
 use serde::{Deserialize, Serialize};
@@ -43,6 +43,16 @@ pub enum LossArg {
     Mse,
     /// Mean Euclidean distance to the truth, cm (the evaluation's MDE).
     Distance,
+}
+
+/// `--sim-gradient`.
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+pub enum SimGradientArg {
+    /// None: a step's residual is scored on that step only (the paper's training).
+    Detached,
+    /// Through free flight: later steps charge a velocity residual for the motion it keeps
+    /// causing.
+    FreeFlight,
 }
 
 /// Arguments of `train`.
@@ -144,6 +154,12 @@ pub struct TrainArgs {
     /// evaluation reports; robust to segments the bounded residual cannot fix).
     #[arg(long, value_enum, default_value_t = LossArg::Mse)]
     pub loss: LossArg,
+    /// How gradients cross the (non-differentiable) backbone: `detached` (the paper's: each
+    /// residual is scored on its own step's positions only) or `free-flight` (a velocity
+    /// residual is also charged for the displacement it keeps causing at later steps of the
+    /// rollout). See docs/residual.md.
+    #[arg(long, value_enum, default_value_t = SimGradientArg::Detached)]
+    pub sim_gradient: SimGradientArg,
     /// Print only the final line.
     #[arg(long)]
     pub quiet: bool,
@@ -207,6 +223,9 @@ struct TrainReport {
     /// Per optimiser step, in `loss_unit` (the name predates `--loss distance`).
     loss_cm2: Vec<f64>,
     loss_unit: &'static str,
+    /// Per optimiser step, the backbone alone on the same segments (same unit; `null` where
+    /// no segment could be scored): the network learns where `loss_cm2` falls below it.
+    backbone_loss: Vec<f64>,
     grad_norm: Vec<f64>,
     lr: Vec<f64>,
     diverged_rollouts: usize,
@@ -243,6 +262,24 @@ fn model_config(args: &TrainArgs) -> ModelConfig {
 
 fn read_previous(path: &Path) -> Option<serde_json::Value> {
     serde_json::from_str(&std::fs::read_to_string(path).ok()?).ok()
+}
+
+/// `Σ loss / Σ backbone` over the steps `range` where both are finite: below 1 where the
+/// network beats the backbone on the segments it is trained on.
+fn loss_ratio(loss: &[f64], backbone: &[f64], range: std::ops::Range<usize>) -> f64 {
+    let (mut a, mut b) = (0.0, 0.0);
+    for (l, k) in loss
+        .get(range.clone())
+        .unwrap_or_default()
+        .iter()
+        .zip(backbone.get(range).unwrap_or_default())
+    {
+        if l.is_finite() && k.is_finite() {
+            a += l;
+            b += k;
+        }
+    }
+    if b > 0.0 { a / b } else { f64::NAN }
 }
 
 fn floats(v: &serde_json::Value, key: &str) -> Vec<f64> {
@@ -296,6 +333,10 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
             LossArg::Mse => TrainLoss::Mse,
             LossArg::Distance => TrainLoss::Distance,
         },
+        sim_gradient: match args.sim_gradient {
+            SimGradientArg::Detached => SimGradient::Detached,
+            SimGradientArg::FreeFlight => SimGradient::FreeFlight,
+        },
     };
     let unit = train_cfg.loss.unit();
     let net = ResidualNet::new(&model_cfg, args.seed)?;
@@ -304,6 +345,7 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
     let ckpt = args.run.join("train_ckpt.safetensors");
     let report_path = args.run.join("train.json");
     let (mut loss, mut gnorm, mut lrs, mut prior_wall) = (Vec::new(), Vec::new(), Vec::new(), 0.0);
+    let mut base_loss = Vec::new();
     let mut selection: Option<Selection> = None;
     if ckpt.exists() && !args.restart {
         trainer
@@ -314,6 +356,10 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
             loss = floats(&prev, "loss_cm2");
             gnorm = floats(&prev, "grad_norm");
             lrs = floats(&prev, "lr");
+            base_loss = floats(&prev, "backbone_loss");
+            // Runs written before the backbone loss was recorded: unknown for those steps.
+            base_loss.resize(loss.len(), f64::NAN);
+            base_loss.truncate(keep);
             loss.truncate(keep);
             gnorm.truncate(keep);
             lrs.truncate(keep);
@@ -369,6 +415,7 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
     let mut status = "done".to_string();
     let save = |trainer: &Trainer,
                 loss: &[f64],
+                base_loss: &[f64],
                 gnorm: &[f64],
                 lrs: &[f64],
                 status: &str,
@@ -393,6 +440,7 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
                 status: status.to_string(),
                 loss_cm2: loss.to_vec(),
                 loss_unit: unit,
+                backbone_loss: base_loss.to_vec(),
                 grad_norm: gnorm.to_vec(),
                 lr: lrs.to_vec(),
                 diverged_rollouts: diverged,
@@ -410,6 +458,7 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
             Ok(s) => {
                 diverged_rollouts += s.diverged;
                 loss.push(s.loss);
+                base_loss.push(s.backbone_loss);
                 gnorm.push(s.grad_norm);
                 lrs.push(s.lr);
                 let n = loss.len().min(20);
@@ -418,7 +467,14 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
                     .filter(|l| l.is_finite())
                     .sum::<f64>()
                     / n as f64;
-                bar.set_message(format!("loss {recent:.4} {unit}"));
+                let ratio = loss_ratio(
+                    &loss,
+                    &base_loss,
+                    loss.len().saturating_sub(100)..loss.len(),
+                );
+                bar.set_message(format!(
+                    "loss {recent:.4} {unit}, {ratio:.3} x backbone (last 100)"
+                ));
                 bar.set_position(trainer.step as u64);
             }
             Err(ResidualError::Diverged { step, what }) => {
@@ -444,6 +500,7 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
             save(
                 &trainer,
                 &loss,
+                &base_loss,
                 &gnorm,
                 &lrs,
                 "running",
@@ -466,6 +523,7 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
     save(
         &trainer,
         &loss,
+        &base_loss,
         &gnorm,
         &lrs,
         &status,
@@ -486,14 +544,17 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
         .copied()
         .collect::<Vec<_>>();
     let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
+    let k = loss.len().min(200);
     println!(
-        "pgrd ({}) on {}: {} steps, {} loss {:.4} -> {:.4} {unit} (mean of first/last 20), {} diverged rollouts, {:.1} s -> {}",
+        "pgrd ({}) on {}: {} steps, {} loss {:.4} -> {:.4} {unit} (mean of first/last 20), {:.3} -> {:.3} x the backbone's on the same segments (first/last {k}), {} diverged rollouts, {:.1} s -> {}",
         trainer.net.config().variant(),
         data.meta.object,
         trainer.step,
         train_cfg.loss.name(),
         mean(&first),
         mean(&last),
+        loss_ratio(&loss, &base_loss, 0..k),
+        loss_ratio(&loss, &base_loss, loss.len() - k..loss.len()),
         diverged_rollouts,
         prior_wall + t_train.elapsed().as_secs_f64(),
         report_path.display()

@@ -46,5 +46,5 @@ pub use config::{Combine, EncoderKind, InputConvention, ModelConfig, ResidualKin
 pub use error::{ResidualError, Result};
 pub use loss::{DISTANCE_EPS_CM, TrainLoss};
 pub use model::{INPUTS, ResidualNet};
-pub use rollout::{History, HybridRollout, RolloutOptions, hybrid_rollout, predict};
+pub use rollout::{History, HybridRollout, RolloutOptions, SimGradient, hybrid_rollout, predict};
 pub use train::{Sample, StartFrom, StepStats, TrainConfig, TrainSet, Trainer, clearly_better};

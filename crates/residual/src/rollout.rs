@@ -6,6 +6,7 @@ use candle_core::Tensor;
 use dataset::Episode;
 use glam::Vec3;
 use scene::Scene;
+use serde::{Deserialize, Serialize};
 use springs::{Actions, Backbone, SimError, State};
 
 use crate::loss::{TrainLoss, step_loss};
@@ -98,6 +99,27 @@ pub struct RolloutOptions {
     pub train: bool,
     /// Curve each transformer block attends along (`curves[b % 4]`).
     pub curves: [usize; CURVES],
+    /// With `train`: how a residual's effect on later steps reaches the loss.
+    pub sim_gradient: SimGradient,
+}
+
+/// How gradients cross the backbone's step in a training rollout (the backbone itself is not
+/// differentiable).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SimGradient {
+    /// Not at all (the paper's training): the backbone's prediction is a constant, so a
+    /// step's residual is scored only on that step's positions (and reaches later steps only
+    /// through the network's inputs). A velocity residual keeps moving the object afterwards,
+    /// which this loss never charges it for.
+    #[default]
+    Detached,
+    /// Through the Jacobian of free flight, `x' = x + v' dt`, `v' = v + a dt` with the
+    /// acceleration `a` taken as independent of the state: every later step's loss sees the
+    /// displacement a velocity residual keeps causing (springs, damping and contacts, which
+    /// absorb part of it, are ignored). Held particles carry nothing. The forward values are
+    /// unchanged.
+    FreeFlight,
 }
 
 impl Default for RolloutOptions {
@@ -106,6 +128,7 @@ impl Default for RolloutOptions {
             steps: usize::MAX,
             train: false,
             curves: [0, 1, 2, 3],
+            sim_gradient: SimGradient::Detached,
         }
     }
 }
@@ -168,6 +191,37 @@ pub(crate) fn hybrid_rollout_with_loss(
         opts,
         opts.train.then_some(&loss as &LossFn<'_>),
     )
+}
+
+/// The training loss of the backbone alone on `scene`'s first `steps` steps (no residual),
+/// the yardstick of a training rollout's loss: a network that learns something useful scores
+/// below it on the same segments. `None` when the backbone does not stay finite.
+pub(crate) fn backbone_loss(
+    backbone: &Backbone,
+    scene: &Scene,
+    steps: usize,
+    kind: TrainLoss,
+) -> Result<Option<f64>> {
+    let dev = candle_core::Device::Cpu;
+    let mut sim = scene.init.clone();
+    let mut scratch = backbone.scratch();
+    let mut total = 0.0;
+    for step in 0..steps.min(scene.window.steps) {
+        let (Some(from), Some(to)) = (scene.actions.frame(step), scene.actions.frame(step + 1))
+        else {
+            return Err(ResidualError::Input(format!(
+                "no action frame for step {step}"
+            )));
+        };
+        match backbone.step(&mut sim, from, to, &mut scratch) {
+            Ok(()) => {}
+            Err(SimError::NonFinite { .. }) => return Ok(None),
+            Err(e) => return Err(ResidualError::Sim(e)),
+        }
+        let l = step_loss(kind, scene, step, &to_tensor(&sim.x, &dev)?)?;
+        total += f64::from(l.to_scalar::<f32>()?);
+    }
+    Ok(total.is_finite().then_some(total))
 }
 
 /// Predicts the positions of all particles of `backbone` after each of `steps` steps of
@@ -270,8 +324,23 @@ fn run(
             })?;
         let centre = current.iter().sum::<Vec3>() / n.max(1) as f32;
         let c = Tensor::from_slice(&centre.to_array(), (1, 3), &dev)?;
-        let x_sim = to_tensor(&sim.x, &dev)?;
-        let v_sim = to_tensor(&sim.v, &dev)?;
+        let free: Vec<f32> = held
+            .iter()
+            .map(|&g| {
+                let held = g >= 0 && from.closed.get(g as usize).copied().unwrap_or(false);
+                if held { 0.0 } else { 1.0 }
+            })
+            .collect();
+        let free = Tensor::from_vec(free, (n, 1), &dev)?;
+        let mut x_sim = to_tensor(&sim.x, &dev)?;
+        let mut v_sim = to_tensor(&sim.v, &dev)?;
+        if train && opts.sim_gradient == SimGradient::FreeFlight {
+            // `a − a.detach()` is zero with `a`'s gradient: the values stay the backbone's.
+            let gx = (&x - x.detach())?.broadcast_mul(&free)?;
+            let gv = (&v - v.detach())?.broadcast_mul(&free)?;
+            x_sim = ((x_sim + gx)? + (&gv * f64::from(dt))?)?;
+            v_sim = (v_sim + gv)?;
+        }
         let pos = x.broadcast_sub(&c)?;
         // Earlier and predicted positions enter as displacements from the current position,
         // expressed like velocities (m per step / dt, times `velocity_scale`): the corrections
@@ -306,14 +375,6 @@ fn run(
         if window.len() > cfg.window {
             window.remove(0);
         }
-        let free: Vec<f32> = held
-            .iter()
-            .map(|&g| {
-                let held = g >= 0 && from.closed.get(g as usize).copied().unwrap_or(false);
-                if held { 0.0 } else { 1.0 }
-            })
-            .collect();
-        let free = Tensor::from_vec(free, (n, 1), &dev)?;
         let delta = net.aggregate(&window, Pass::Grad)?.broadcast_mul(&free)?;
         let (nx, nv) = match cfg.residual {
             ResidualKind::Velocity => ((&x_sim + (&delta * f64::from(dt))?)?, (&v_sim + &delta)?),

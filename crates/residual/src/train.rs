@@ -19,8 +19,10 @@ pub use holdout::clearly_better;
 
 use crate::augment::{rotate_history, rotate_scene};
 use crate::loss::TrainLoss;
-use crate::rollout::hybrid_rollout_with_loss;
-use crate::{History, ResidualError, ResidualNet, Result, RolloutOptions, hybrid_rollout};
+use crate::rollout::{backbone_loss, hybrid_rollout_with_loss};
+use crate::{
+    History, ResidualError, ResidualNet, Result, RolloutOptions, SimGradient, hybrid_rollout,
+};
 
 /// Optimisation settings (saved in `train.json`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -55,6 +57,10 @@ pub struct TrainConfig {
     /// [`TrainLoss::Mse`]).
     #[serde(default)]
     pub loss: TrainLoss,
+    /// How gradients cross the backbone's steps (configurations written before this option
+    /// trained with [`SimGradient::Detached`]).
+    #[serde(default)]
+    pub sim_gradient: SimGradient,
 }
 
 /// The state a training segment starts from.
@@ -89,6 +95,7 @@ impl Default for TrainConfig {
             start_from: StartFrom::Guided,
             refresh_every: 0,
             loss: TrainLoss::Mse,
+            sim_gradient: SimGradient::Detached,
         }
     }
 }
@@ -391,6 +398,10 @@ impl TrainSet {
 pub struct StepStats {
     /// Mean rollout loss: sum over steps of the per-step loss ([`TrainConfig::loss`]; cm² or cm).
     pub loss: f64,
+    /// Mean loss of the backbone alone on the same segments (same start, no residual), in the
+    /// same unit: `loss / backbone_loss` below 1 means the network improves on the backbone
+    /// where it is trained. NaN when no segment was scored.
+    pub backbone_loss: f64,
     /// Gradient norm before clipping.
     pub grad_norm: f64,
     /// Learning rate used.
@@ -478,6 +489,7 @@ impl Trainer {
         let mut rng = self.rng_at(self.step);
         let mut total: Option<Tensor> = None;
         let (mut used, mut diverged) = (0usize, 0usize);
+        let (mut base_sum, mut base_n) = (0.0, 0usize);
         for sample in samples {
             let mut curves = [0usize, 1, 2, 3];
             for i in (1..curves.len()).rev() {
@@ -487,6 +499,7 @@ impl Trainer {
                 steps: self.cfg.rollout_steps,
                 train: true,
                 curves,
+                sim_gradient: self.cfg.sim_gradient,
             };
             match hybrid_rollout_with_loss(
                 &self.net,
@@ -505,6 +518,16 @@ impl Trainer {
                         None => l,
                     });
                     used += 1;
+                    let base = backbone_loss(
+                        set.backbone(sample),
+                        &sample.scene,
+                        self.cfg.rollout_steps,
+                        self.cfg.loss,
+                    )?;
+                    if let Some(b) = base {
+                        base_sum += b;
+                        base_n += 1;
+                    }
                 }
                 Err(ResidualError::Diverged { .. }) => diverged += 1,
                 Err(e) => return Err(e),
@@ -515,6 +538,7 @@ impl Trainer {
         let Some(total) = total else {
             return Ok(StepStats {
                 loss: f64::NAN,
+                backbone_loss: f64::NAN,
                 grad_norm: f64::NAN,
                 lr,
                 diverged,
@@ -563,6 +587,11 @@ impl Trainer {
         }
         Ok(StepStats {
             loss: value,
+            backbone_loss: if base_n > 0 {
+                base_sum / base_n as f64
+            } else {
+                f64::NAN
+            },
             grad_norm: norm,
             lr,
             diverged,
