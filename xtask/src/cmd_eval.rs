@@ -28,10 +28,11 @@ pub struct EvalArgs {
     /// Evaluation protocol.
     #[arg(long, value_enum, default_value_t = ProtocolArg::Paper)]
     pub protocol: ProtocolArg,
-    /// Write the report as JSON here (default: <run>/eval_<split>.json).
+    /// Write the report as JSON here (default: <run>/eval_<split>.json for the spring-mass
+    /// backbone, <run>/eval_pgrd_<split>.json for PGRD, so evaluating both keeps both).
     #[arg(long)]
     pub json: Option<PathBuf>,
-    /// Write the error-per-step plot here (default: <run>/eval_<split>.svg).
+    /// Write the error-per-step plot here (default: beside the JSON, .svg).
     #[arg(long)]
     pub plot: Option<PathBuf>,
     /// Skip exact EMD (faster on large clouds).
@@ -99,6 +100,16 @@ fn summary(curves: &[Vec<f64>], convention: &'static str) -> anyhow::Result<(Sum
 }
 
 /// Evaluates the run's model and writes the JSON report and the plot.
+/// File name (without extension) of an evaluation's default outputs: the backbone's keep the
+/// historical `eval_<split>`, PGRD's get the model name so one run directory holds both.
+fn stem(model_name: &str, split: Split) -> String {
+    if model_name == "pgrd" {
+        format!("eval_pgrd_{split}")
+    } else {
+        format!("eval_{split}")
+    }
+}
+
 pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
     let t0 = Instant::now();
     let data = Dataset::open(&args.data)?;
@@ -156,10 +167,10 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
         }
     }
     if per_episode.is_empty() {
-        let json = args
-            .json
-            .clone()
-            .unwrap_or_else(|| args.run.join(format!("eval_{}.json", args.split)));
+        let json = args.json.clone().unwrap_or_else(|| {
+            args.run
+                .join(format!("{}.json", stem(&model_name, args.split)))
+        });
         write_json(
             &json,
             &serde_json::json!({
@@ -247,10 +258,10 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
         )?;
     }
     let split = args.split.to_string();
-    let plot = args
-        .plot
-        .clone()
-        .unwrap_or_else(|| args.run.join(format!("eval_{split}.svg")));
+    let plot = args.plot.clone().unwrap_or_else(|| {
+        args.run
+            .join(format!("{}.svg", stem(&model_name, args.split)))
+    });
     plot_curves(
         &plot,
         &format!(
@@ -278,10 +289,10 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
         rollout_wall_s,
         wall_s: t0.elapsed().as_secs_f64(),
     };
-    let json = args
-        .json
-        .clone()
-        .unwrap_or_else(|| args.run.join(format!("eval_{split}.json")));
+    let json = args.json.clone().unwrap_or_else(|| {
+        args.run
+            .join(format!("{}.json", stem(&model_name, args.split)))
+    });
     write_json(&json, &report)?;
     let m = &report.metrics;
     let emd_text = m
