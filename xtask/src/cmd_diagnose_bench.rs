@@ -147,6 +147,9 @@ pub struct DiagnoseBenchArgs {
     /// its no-effect training MDE.
     #[arg(long, default_value_t = 0.5)]
     pub target_raise: f64,
+    /// Gripper motions of every generated dataset (`everyday` or `probing`; see `gen`).
+    #[arg(long, default_value_t = world::MotionStyle::Everyday)]
+    pub motion: world::MotionStyle,
     /// Where generated datasets and reports go.
     #[arg(long, default_value = "target/diagnose-bench")]
     pub work: PathBuf,
@@ -330,6 +333,7 @@ fn generate(
     cfg.tracked = args.tracked;
     cfg.seed = seed;
     cfg.effects = effects;
+    cfg.motion = args.motion;
     // The diagnosis never renders: skip the ground-truth Gaussians.
     cfg.gaussian_particles = 0;
     let data = world::generate(&cfg)?;

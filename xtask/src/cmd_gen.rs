@@ -5,7 +5,7 @@ use std::time::Instant;
 
 use anyhow::Context;
 use indicatif::{ProgressBar, ProgressStyle};
-use world::{Effects, GenConfig, ObjectKind, Observation};
+use world::{Effects, GenConfig, MotionStyle, ObjectKind, Observation};
 
 /// Size preset of a generated dataset.
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
@@ -43,6 +43,11 @@ pub struct GenArgs {
     /// Tracked particles [default: per object, or 150 with --preset fixture].
     #[arg(long)]
     pub tracked: Option<usize>,
+    /// Gripper motions: `everyday` (each object's usual manipulation) or `probing` (fast
+    /// sweeps, holds, slides over the table, jerks: motions that excite the diagnosis's
+    /// effects; the pushed teddy is poked either way).
+    #[arg(long, default_value_t = MotionStyle::Everyday)]
+    pub motion: MotionStyle,
     /// Dataset size preset.
     #[arg(long, value_enum, default_value = "full")]
     pub preset: Preset,
@@ -70,6 +75,7 @@ pub fn run(args: &GenArgs) -> anyhow::Result<()> {
         cfg.effects = Effects::parse(&args.effects, object)?;
         cfg.observation = Observation::parse(&args.observation)?;
         cfg.seed = args.seed;
+        cfg.motion = args.motion;
         if let Some(e) = args.episodes {
             cfg.train_episodes = e;
         }

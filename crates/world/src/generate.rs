@@ -10,6 +10,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::build::{Blueprint, Resolution, blueprint};
+use crate::motion::MotionStyle;
 use crate::record::{PUSH_RADIUS, Recording, SETTLE_S, STEP_S, Scene, record};
 use crate::rng::{stream, tag};
 use crate::truth_gaussians::{self, TruthGaussians};
@@ -50,6 +51,8 @@ pub struct GenConfig {
     /// At most this many fine surface particles carry ground-truth Gaussians, written as
     /// `truth_ep_NNNN.safetensors` beside each episode ([`TruthGaussians`]); 0 writes none.
     pub gaussian_particles: usize,
+    /// How the gripper moves.
+    pub motion: MotionStyle,
 }
 
 /// Default cap on the fine particles carrying ground-truth Gaussians in a full dataset.
@@ -83,6 +86,7 @@ impl GenConfig {
             resolution: Resolution::Full,
             seed: 0,
             gaussian_particles: DEFAULT_GAUSSIAN_PARTICLES,
+            motion: MotionStyle::Everyday,
         }
     }
 
@@ -198,6 +202,9 @@ pub struct Truth {
     /// such files).
     #[serde(default)]
     pub gaussian_particles: usize,
+    /// How the gripper moved (absent in files written before styles existed: everyday).
+    #[serde(default)]
+    pub motion: MotionStyle,
     /// The recordings.
     pub recordings: Vec<RecordingInfo>,
 }
@@ -290,6 +297,7 @@ pub fn generate_with_progress(
         tracked: &tracked,
         gaussian_particles: &gaussian_particles,
         seed: cfg.seed,
+        motion: cfg.motion,
     };
     let done = AtomicUsize::new(0);
     let recordings: Vec<Recording> = plans
@@ -405,6 +413,7 @@ pub fn generate_with_progress(
         tracked_indices: tracked,
         held_fine_particles: bp.held.len(),
         gaussian_particles: gaussian_particles.len(),
+        motion: cfg.motion,
         recordings: infos,
     };
     debug_assert!((STEP_S * FPS - 1.0).abs() < 1e-6);

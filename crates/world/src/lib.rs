@@ -56,6 +56,7 @@ pub use generate::{
     TimingInfo, Truth, default_tracked, generate, generate_with_progress,
 };
 pub use lab::Lab;
+pub use motion::MotionStyle;
 pub use object::ObjectKind;
 pub use observation::Observation;
 pub use obstacles::BoxObstacle;

@@ -7,8 +7,56 @@
 
 use glam::Vec3;
 use rand::Rng;
+use serde::{Deserialize, Serialize};
 
-use crate::ObjectKind;
+use crate::{Error, ObjectKind};
+
+/// How the gripper moves in the recordings of grasped objects.
+///
+/// The pushed teddy is poked in every style (its pokes are planned online from its position).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum MotionStyle {
+    /// Everyday manipulation in the style of each object: smooth drifts, waving, lifts and
+    /// lowers (`docs/world.md`, "Gripper motions").
+    #[default]
+    Everyday,
+    /// Motions chosen to excite the effects a diagnosis looks for: fast sweeps followed by
+    /// holds (drag, inertia, delay, damping, permanent set), the object lowered onto the table
+    /// and slid slowly over it (friction, stick-slip), and quick vertical jerks (stretch,
+    /// nonlinear elasticity, plasticity, mass distribution).
+    Probing,
+}
+
+impl MotionStyle {
+    /// The style's command-line name.
+    pub fn name(self) -> &'static str {
+        match self {
+            MotionStyle::Everyday => "everyday",
+            MotionStyle::Probing => "probing",
+        }
+    }
+}
+
+impl std::fmt::Display for MotionStyle {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl std::str::FromStr for MotionStyle {
+    type Err = Error;
+    fn from_str(s: &str) -> Result<Self, Error> {
+        [MotionStyle::Everyday, MotionStyle::Probing]
+            .into_iter()
+            .find(|m| m.name() == s)
+            .ok_or_else(|| {
+                Error::Config(format!(
+                    "unknown motion style `{s}` (expected everyday or probing)"
+                ))
+            })
+    }
+}
 
 #[derive(Clone, Copy, Debug)]
 struct Knot {
@@ -277,6 +325,104 @@ pub(crate) fn grasp_motion(
             }
             m.set_velocities(rng, 2);
             m.add_waves(rng, 2, (0.5, 1.2), 0.07, 2.0, 0.1);
+        }
+    }
+    m
+}
+
+/// Heights and reach of a grasped object's probing motions, m.
+struct ProbeFrame {
+    /// Gripper height at which the object lies on (rope, toys) or drapes over (hanging
+    /// objects) the table.
+    contact_z: f32,
+    /// Range of gripper heights with the object in the air.
+    air_z: (f32, f32),
+    /// Horizontal reach around `centre`.
+    reach: f32,
+}
+
+fn probe_frame(kind: ObjectKind, start: Vec3, hang: f32) -> ProbeFrame {
+    match kind {
+        // Lying on the table: the gripper's rest height is the contact height.
+        ObjectKind::Rope => ProbeFrame {
+            contact_z: start.z,
+            air_z: (0.15, 0.4),
+            reach: 0.35,
+        },
+        ObjectKind::Sloth | ObjectKind::Teddy => ProbeFrame {
+            contact_z: start.z,
+            air_z: (start.z + 0.12, start.z + 0.3),
+            reach: 0.2,
+        },
+        // Hanging: lowering the gripper to 60 % of the hanging length lays the lower 40 % of
+        // the sheet on the table.
+        ObjectKind::Paper | ObjectKind::Flag | ObjectKind::Duster => ProbeFrame {
+            contact_z: (0.6 * hang).max(0.03),
+            air_z: (start.z - 0.06, start.z + 0.1),
+            reach: 0.2,
+        },
+    }
+}
+
+/// A random horizontal offset of length in `lo..hi`, m.
+fn horizontal(rng: &mut impl Rng, lo: f32, hi: f32) -> Vec3 {
+    let az = rng.random_range(0.0..std::f32::consts::TAU);
+    Vec3::new(az.cos(), az.sin(), 0.0) * rng.random_range(lo..hi)
+}
+
+/// A probing trajectory for a grasped object (see [`MotionStyle::Probing`]): `start` is the
+/// gripper after settling, `hang` how far the object reaches below it (m), `centre` the middle
+/// of the workspace. Waypoints have zero velocity, so every move ends in a clean stop.
+pub(crate) fn probing_motion(
+    kind: ObjectKind,
+    start: Vec3,
+    hang: f32,
+    centre: Vec3,
+    duration: f32,
+    rng: &mut impl Rng,
+) -> Motion {
+    let f = probe_frame(kind, start, hang);
+    let mut m = Motion::new(start, f.contact_z.min(start.z) - 0.005);
+    m.push(rng.random_range(0.2..0.5), start);
+    while m.end_time() < duration {
+        let p = m.last();
+        let in_air = p.z >= f.air_z.0 - 1e-3;
+        let r = rng.random_range(0.0..1.0f32);
+        if r < 0.4 {
+            // Fast sweep through the air (15–30 cm in 0.3–0.5 s: peak speed 0.6–1.9 m/s), then
+            // hold still.
+            if !in_air {
+                let up = Vec3::new(p.x, p.y, rng.random_range(f.air_z.0..f.air_z.1));
+                m.push(rng.random_range(0.6..1.0), up);
+            }
+            let p = m.last();
+            let q = p + horizontal(rng, 0.15, 0.3);
+            let q = Vec3::new(q.x, q.y, rng.random_range(f.air_z.0..f.air_z.1));
+            m.push(rng.random_range(0.3..0.5), clamp_disk(q, centre, f.reach));
+            m.push(rng.random_range(0.5..1.2), m.last());
+        } else if r < 0.75 {
+            // Lower onto the table and slide slowly (0.1–0.3 m/s), then rest there.
+            let down = Vec3::new(p.x, p.y, f.contact_z + rng.random_range(0.0..0.01));
+            if (p.z - down.z).abs() > 0.01 {
+                m.push(rng.random_range(0.6..1.0), down);
+                m.push(rng.random_range(0.2..0.4), down);
+            }
+            let q = clamp_disk(down + horizontal(rng, 0.12, 0.3), centre, f.reach);
+            m.push(rng.random_range(0.8..1.6), q);
+            m.push(rng.random_range(0.3..0.6), q);
+        } else {
+            // Quick vertical jerk in the air and back, then hold.
+            if !in_air {
+                let up = Vec3::new(p.x, p.y, rng.random_range(f.air_z.0..f.air_z.1));
+                m.push(rng.random_range(0.6..1.0), up);
+            }
+            let p = m.last();
+            m.push(
+                rng.random_range(0.25..0.4),
+                p + Vec3::Z * rng.random_range(0.08..0.15),
+            );
+            m.push(rng.random_range(0.25..0.4), p);
+            m.push(rng.random_range(0.6..1.0), p);
         }
     }
     m

@@ -5,7 +5,7 @@ use glam::Vec3;
 
 use crate::build::{Blueprint, place};
 use crate::effects::Effects;
-use crate::motion::{Motion, PokePlanner, grasp_motion};
+use crate::motion::{Motion, MotionStyle, PokePlanner, grasp_motion, probing_motion};
 use crate::observation::Observation;
 use crate::rng::{stream, tag};
 use crate::sim::{GraspMode, Sim};
@@ -30,6 +30,7 @@ pub(crate) struct Scene<'a> {
     /// Fine particles whose true positions are kept for ground-truth rendering.
     pub gaussian_particles: &'a [u32],
     pub seed: u64,
+    pub motion: MotionStyle,
 }
 
 /// The sampled recording.
@@ -98,7 +99,16 @@ pub(crate) fn record(scene: &Scene<'_>, index: u64, frames: usize) -> Result<Rec
             ObjectKind::Rope => Vec3::new(c.x, c.y, 0.0),
             _ => Vec3::new(g0.x, g0.y, 0.0),
         };
-        motion = grasp_motion(scene.kind, g0, centre, duration, &mut motion_rng);
+        motion = match scene.motion {
+            MotionStyle::Everyday => {
+                grasp_motion(scene.kind, g0, centre, duration, &mut motion_rng)
+            }
+            MotionStyle::Probing => {
+                let lowest = sim.x.iter().map(|p| p.z).fold(f32::INFINITY, f32::min);
+                let hang = (g0.z - lowest).max(0.0);
+                probing_motion(scene.kind, g0, hang, centre, duration, &mut motion_rng)
+            }
+        };
     }
 
     let n = scene.tracked.len();
