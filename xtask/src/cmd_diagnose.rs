@@ -10,7 +10,9 @@ use dataset::{Dataset, Split};
 use gap::{BaseEffect, Candidate, DiagnoseConfig, Diagnosis};
 use scene::{Protocol, Scene, SceneConfig};
 
-use crate::common::{ProtocolArg, load_scenes, read_backbone};
+use crate::common::{
+    ProtocolArg, backbone_path, load_scenes, predict_tracked, read_backbone, read_residual,
+};
 use crate::report::write_json;
 
 #[path = "cmd_diagnose_bench.rs"]
@@ -58,18 +60,29 @@ pub struct DiagnoseArgs {
     /// Effects already in the model, refitted with the backbone in the control and in every
     /// candidate refit, and not candidates themselves: comma-separated `name` (starts at the
     /// effect's usual strength) or `name=v1[:v2]` (e.g. `bending=0.12`, as printed after a
-    /// diagnosis).
+    /// diagnosis). Default: the effects in the run's backbone.json, if any.
     #[arg(long = "with")]
     pub with: Option<String>,
     /// Skip the generic external-field probe (the verdict can then not be `unknown`).
     #[arg(long)]
     pub no_probe: bool,
+    /// Ignore `<run>/residual.safetensors` (by default a trained network there is scored on
+    /// the held-out episodes: how much of the gap is learnable, and `unknown` when it beats
+    /// every library model).
+    #[arg(long)]
+    pub no_network: bool,
+    /// When the verdict is an effect, also write this run directory with the model that has
+    /// it: `backbone.json` with the refitted backbone parameters and the base effects plus
+    /// the verdict's, at their refitted values (for `eval`, `train`, `render` and another
+    /// `diagnose`, which then starts from those effects as its base).
+    #[arg(long)]
+    pub write_run: Option<PathBuf>,
     /// Print only the verdict line.
     #[arg(long)]
     pub quiet: bool,
 }
 
-fn config_from(args: &DiagnoseArgs) -> anyhow::Result<DiagnoseConfig> {
+fn config_from(args: &DiagnoseArgs, run_effects: &[BaseEffect]) -> anyhow::Result<DiagnoseConfig> {
     let candidates = match &args.candidates {
         Some(list) => list
             .split(',')
@@ -87,7 +100,7 @@ fn config_from(args: &DiagnoseArgs) -> anyhow::Result<DiagnoseConfig> {
         candidates,
         base: match &args.with {
             Some(list) => BaseEffect::parse_list(list)?,
-            None => Vec::new(),
+            None => run_effects.to_vec(),
         },
         probe: !args.no_probe,
         ..DiagnoseConfig::default()
@@ -114,6 +127,41 @@ pub fn write_report(out: &Path, diagnosis: &Diagnosis, title: &str) -> anyhow::R
         .with_context(|| format!("writing {}", out.join("report.html").display()))
 }
 
+/// Per held-out episode, the MDE (cm, mean over steps) of the backbone with the network and of
+/// the backbone alone. An episode whose hybrid rollout fails gets the backbone's error (with a
+/// warning), so a failure cannot make the network look better.
+fn network_errors(
+    data: &Dataset,
+    protocol: Protocol,
+    params: &springs::SpringParams,
+    options: &residual::BackboneOptionsFn,
+    net: &residual::ResidualNet,
+) -> anyhow::Result<(Vec<f64>, Vec<f64>)> {
+    use rayon::prelude::*;
+    let val = load_scenes(data, Split::Val, protocol, &SceneConfig::default())?;
+    let mde = |scene: &Scene, pred: &[Vec<glam::Vec3>]| -> anyhow::Result<f64> {
+        let e = scene::score_steps(scene, pred, false)?;
+        Ok(100.0 * e.iter().map(|x| x.mde).sum::<f64>() / e.len().max(1) as f64)
+    };
+    let rows: Vec<anyhow::Result<(f64, f64)>> = val
+        .par_iter()
+        .map(|(i, scene)| {
+            let alone = mde(scene, &predict_tracked(scene, params, options, None, None)?)?;
+            let history = residual::History::from_episode(scene, &data.load_episode(*i)?, data.meta.fps)?;
+            let with = match predict_tracked(scene, params, options, Some(net), Some(&history)) {
+                Ok(p) => mde(scene, &p)?,
+                Err(e) => {
+                    eprintln!("warning: episode {i}: the hybrid rollout failed ({e:#}); scored as its backbone");
+                    alone
+                }
+            };
+            Ok((with, alone))
+        })
+        .collect();
+    let rows = rows.into_iter().collect::<anyhow::Result<Vec<_>>>()?;
+    Ok(rows.into_iter().unzip())
+}
+
 /// Runs `diagnose`.
 pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
     let t0 = Instant::now();
@@ -122,13 +170,38 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
     let protocol: Protocol = args.protocol.into();
     let train = scenes(&data, Split::Train, protocol)?;
     let val = scenes(&data, Split::Val, protocol)?;
-    let config = config_from(args)?;
+    let config = config_from(args, &backbone.effects)?;
     let quiet = args.quiet;
     let d = gap::diagnose(&train, &val, &backbone.params, &config, &mut |line| {
         if !quiet {
             println!("  {line}");
         }
     })?;
+    let mut d = d;
+    if !args.no_network
+        && let Some(net) = read_residual(&args.run)?
+    {
+        let options = backbone.options_for(&data, protocol)?;
+        let (network, backbone_alone) =
+            network_errors(&data, protocol, &backbone.params, &options, &net)?;
+        gap::add_learnable(&mut d, &network, &backbone_alone)?;
+        if let Some(l) = &d.learnable {
+            println!(
+                "  residual network: held-out MDE {:.3} cm (its backbone {:.3} cm); against {}: {:+.1}% [{:+.1}, {:+.1}]{}",
+                l.network_mde_cm,
+                l.backbone_mde_cm,
+                l.model,
+                100.0 * l.vs_model.shrinkage,
+                100.0 * l.vs_model.ci95[0],
+                100.0 * l.vs_model.ci95[1],
+                if l.changed_verdict {
+                    " -> verdict unknown"
+                } else {
+                    ""
+                }
+            );
+        }
+    }
     let title = format!("{} ({})", data.meta.object, args.data.display());
     write_report(&args.out, &d, &title)?;
     let how = d.how_far.as_ref().map_or(String::new(), |h| {
@@ -150,11 +223,30 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
     );
     // The user's next step: diagnose again with the verdict's effect in the model.
     if let Ok(c) = Candidate::parse(&d.verdict) {
-        let (_, next) = d.refitted_model(&backbone.params, Some(c))?;
+        let (params, next) = d.refitted_model(&backbone.params, Some(c))?;
         let list: Vec<String> = next.iter().map(BaseEffect::label).collect();
         println!(
             "to diagnose the model with it: --with {} (values refitted here)",
             list.join(",")
+        );
+        if let Some(dir) = &args.write_run {
+            let mut file = backbone.clone();
+            file.params = params;
+            file.effects = next;
+            file.protocol = protocol.name().to_string();
+            std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+            write_json(&backbone_path(dir), &file)?;
+            println!(
+                "wrote {} ({}, refitted here)",
+                backbone_path(dir).display(),
+                file.label()
+            );
+        }
+    } else if let Some(dir) = &args.write_run {
+        println!(
+            "verdict {}: no effect to add, {} not written",
+            d.verdict,
+            dir.display()
         );
     }
     Ok(d)

@@ -58,11 +58,14 @@ pub struct Summary {
 /// The report `eval` writes.
 #[derive(Serialize)]
 pub struct EvalReport {
-    /// Model name ("spring-mass", or "pgrd" when `<run>/residual.safetensors` exists).
+    /// Model name ("spring-mass", "spring-mass+<effect>..." for a backbone with effects, or
+    /// "pgrd" when `<run>/residual.safetensors` exists).
     pub model: String,
     /// Ablation variant of the residual network ("full" for the paper's); absent for the backbone.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub variant: Option<String>,
+    /// The backbone (with its effects, if any): `spring-mass` or `spring-mass+drag+...`.
+    pub backbone: String,
     /// Dataset directory.
     pub dataset: String,
     /// Object name from the dataset.
@@ -120,8 +123,9 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
     let model_name = if net.is_some() {
         "pgrd".to_string()
     } else {
-        backbone.model.clone()
+        backbone.label()
     };
+    let options = backbone.options_for(&data, protocol)?;
     let histories = match &net {
         Some(_) => scenes
             .iter()
@@ -145,8 +149,14 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
         .par_iter()
         .zip(&histories)
         .map(|((i, scene), history)| {
-            let pred = predict_tracked(scene, &backbone.params, net.as_ref(), history.as_ref())
-                .with_context(|| format!("episode {i}"))?;
+            let pred = predict_tracked(
+                scene,
+                &backbone.params,
+                &options,
+                net.as_ref(),
+                history.as_ref(),
+            )
+            .with_context(|| format!("episode {i}"))?;
             let errors = scene::score_steps(scene, &pred, !args.no_emd)?;
             let l1 = scene::deform_l1(scene, &pred)?;
             // The predictions are kept only for the video metrics.
@@ -277,6 +287,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
     let report = EvalReport {
         model: model_name.clone(),
         variant: net.as_ref().map(|n| n.config().variant()),
+        backbone: backbone.label(),
         dataset: args.data.display().to_string(),
         object: data.meta.object.clone(),
         split: split.clone(),

@@ -148,6 +148,7 @@ pub fn run(args: &FitArgs) -> anyhow::Result<BackboneFile> {
         config,
         wall_s: generations_wall,
         session_wall_s: t0.elapsed().as_secs_f64(),
+        effects: Vec::new(),
     };
     write_json(&backbone_path(&args.run), &file)?;
     println!(

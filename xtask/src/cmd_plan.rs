@@ -111,6 +111,13 @@ struct ModelReport {
 pub fn run(args: &PlanArgs) -> anyhow::Result<()> {
     let kind: TaskKind = args.task.parse()?;
     let backbone = read_backbone(&args.run)?;
+    if !backbone.effects.is_empty() {
+        anyhow::bail!(
+            "{}: planning with a backbone that carries effects ({}) is not supported yet; plan with a plain fit's run",
+            args.run.display(),
+            backbone.label()
+        );
+    }
     let net = read_residual(&args.run)?.map(std::sync::Arc::new);
     let models = if args.model.is_empty() {
         let mut m = vec![ModelArg::SpringMass];

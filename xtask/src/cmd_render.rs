@@ -426,10 +426,17 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
     let model = if net.is_some() {
         "pgrd".to_string()
     } else {
-        backbone.model.clone()
+        backbone.label()
     };
-    let predicted = predict_tracked(&scene, &backbone.params, net.as_ref(), history.as_ref())
-        .with_context(|| format!("{model} rollout of episode {index}"))?;
+    let options = backbone.options_for(&data, protocol)?;
+    let predicted = predict_tracked(
+        &scene,
+        &backbone.params,
+        &options,
+        net.as_ref(),
+        history.as_ref(),
+    )
+    .with_context(|| format!("{model} rollout of episode {index}"))?;
     let opts = VideoOptions {
         width: args.width,
         height: args.height,

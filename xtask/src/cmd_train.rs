@@ -300,12 +300,14 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
         .ok();
     let data = Dataset::open(&args.data)?;
     let backbone = read_backbone(&args.run)?;
-    let mut set = TrainSet::with_protocol(
+    let options = backbone.options_for(&data, args.protocol.into())?;
+    let mut set = TrainSet::with_backbone_options(
         &data,
         Split::Train,
         &backbone.params,
         &SceneConfig::default(),
         args.protocol.into(),
+        options,
     )
     .with_context(|| format!("loading training episodes of {}", args.data.display()))?;
     let held = match args.holdout {

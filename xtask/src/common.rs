@@ -70,6 +70,43 @@ pub struct BackboneFile {
     pub wall_s: f64,
     /// Wall time of the command that wrote this file (loading included), s.
     pub session_wall_s: f64,
+    /// Library effects added to the spring-mass model, at fixed values (written by
+    /// `diagnose --write-run` with the diagnosis's refitted parameters; empty for a plain fit).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub effects: Vec<gap::BaseEffect>,
+}
+
+impl BackboneFile {
+    /// The model's name in reports: `spring-mass`, or `spring-mass+drag+...` with effects.
+    pub fn label(&self) -> String {
+        std::iter::once(self.model.clone())
+            .chain(self.effects.iter().map(|e| e.effect.name().to_string()))
+            .collect::<Vec<_>>()
+            .join("+")
+    }
+
+    /// Builds the backbone options of the run's effects for scenes of `data`. Effects that
+    /// depend on where a particle lies on the object use the material frame of `data`'s train
+    /// split under `protocol` (the frame the diagnosis fitted them in, when it ran on the same
+    /// dataset and protocol).
+    pub fn options_for(
+        &self,
+        data: &Dataset,
+        protocol: Protocol,
+    ) -> anyhow::Result<residual::BackboneOptionsFn> {
+        if self.effects.is_empty() {
+            return Ok(std::sync::Arc::new(springs::BackboneOptions::default));
+        }
+        let train: Vec<Scene> = load_scenes(data, Split::Train, protocol, &SceneConfig::default())?
+            .into_iter()
+            .map(|(_, s)| s)
+            .collect();
+        let frame = gap::material_frame(&train)?;
+        let effects = self.effects.clone();
+        Ok(std::sync::Arc::new(move || {
+            gap::backbone_options(&effects, &frame)
+        }))
+    }
 }
 
 /// Path of the backbone file in a run directory.
@@ -103,12 +140,13 @@ pub fn read_residual(run: &Path) -> anyhow::Result<Option<residual::ResidualNet>
 pub fn predict_tracked(
     scene: &Scene,
     params: &springs::SpringParams,
+    options: &residual::BackboneOptionsFn,
     net: Option<&residual::ResidualNet>,
     history: Option<&residual::History>,
 ) -> anyhow::Result<Vec<Vec<glam::Vec3>>> {
     Ok(match (net, history) {
         (Some(net), Some(history)) => {
-            let bb = scene.backbone(params, &scene.sim_config(), Default::default())?;
+            let bb = scene.backbone(params, &scene.sim_config(), options())?;
             residual::hybrid_rollout(net, &bb, scene, history, Default::default())?
                 .positions
                 .into_iter()
@@ -119,6 +157,6 @@ pub fn predict_tracked(
                 .collect()
         }
         (Some(_), None) => anyhow::bail!("the residual network needs the episode's history"),
-        _ => scene.rollout(params, &scene.sim_config(), Default::default())?,
+        _ => scene.rollout(params, &scene.sim_config(), options())?,
     })
 }

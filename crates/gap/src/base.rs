@@ -145,3 +145,31 @@ pub(crate) fn check_distinct(
     }
     Ok(())
 }
+
+/// Backbone options carrying `effects` at their values, in order (for a model that keeps the
+/// effects a diagnosis found: evaluation, residual training). `frame` places the particles on
+/// the object for the effects that vary along it ([`crate::material_frame`] of the training
+/// scenes the values were fitted on).
+///
+/// ```
+/// use gap::{BaseEffect, MaterialFrame};
+/// use glam::Vec3;
+/// let frame = MaterialFrame::new(&[Vec3::ZERO, Vec3::X], Vec3::new(0.5, 0.0, 0.0))?;
+/// let effects = BaseEffect::parse_list("drag=0.9,bending=0.1")?;
+/// let options = gap::backbone_options(&effects, &frame);
+/// assert_eq!(options.effects.len(), 2);
+/// assert!(options.masses.is_none());
+/// # Ok::<(), gap::GapError>(())
+/// ```
+pub fn backbone_options(
+    effects: &[BaseEffect],
+    frame: &crate::MaterialFrame,
+) -> springs::BackboneOptions {
+    springs::BackboneOptions {
+        masses: None,
+        effects: effects
+            .iter()
+            .map(|b| b.effect.effect(&b.values, frame))
+            .collect(),
+    }
+}

@@ -166,6 +166,10 @@ pub struct Diagnosis {
     /// The control refit.
     #[serde(default)]
     pub control: ControlFit,
+    /// A trained residual network on the same held-out episodes, when one was given
+    /// ([`crate::add_learnable`]).
+    #[serde(default)]
+    pub learnable: Option<crate::Learnable>,
     /// The settings.
     pub config: DiagnoseConfig,
     /// Training / held-out episodes.
@@ -538,6 +542,7 @@ pub fn diagnose(
         how_far,
         backbone_as_given,
         control: control_fit,
+        learnable: None,
         config: config.clone(),
         episodes: [train.len(), val.len()],
         wall_s: t0.elapsed().as_secs_f64(),

@@ -294,6 +294,36 @@ pub fn render_html(d: &Diagnosis, title: &str) -> String {
             "held-out MDE, cm",
         );
     }
+    if let Some(l) = &d.learnable {
+        body += "<h2>How much is learnable: the trained residual network</h2>";
+        let _ = write!(
+            body,
+            "<p>Held-out MDE {:.3} cm with the network against {:.3} cm for its backbone{}.</p>",
+            l.network_mde_cm,
+            l.backbone_mde_cm,
+            if l.changed_verdict {
+                "; the network beats the control by more than any library effect can explain, \
+                 so the verdict is <b>unknown</b>"
+            } else {
+                ""
+            }
+        );
+        body += &table(
+            &["network against", "shrinkage", "95% CI"],
+            [
+                ("its backbone".to_string(), l.vs_backbone),
+                (l.model.clone(), l.vs_model),
+            ]
+            .into_iter()
+            .map(|(name, c)| {
+                vec![
+                    name,
+                    format!("{:+.3}", c.shrinkage),
+                    format!("[{:+.3}, {:+.3}]", c.ci95[0], c.ci95[1]),
+                ]
+            }),
+        );
+    }
     body += "<h2>Which: candidates ranked</h2>";
     body += &ranking_chart(d);
     body += &table(

@@ -15,6 +15,8 @@
 //! - A model may already hold some library effects ([`BaseEffect`], e.g. the verdict of an
 //!   earlier diagnosis): they are refitted with the backbone in the control and in every
 //!   candidate refit, so the diagnosis ranks the remaining candidates against that model.
+//! - [`add_learnable`] adds a trained residual network's held-out errors: how much of the
+//!   gap is learnable, and `unknown` when the network beats every model the library offers.
 //! - [`render_html`] turns a [`Diagnosis`] into a self-contained page.
 //!
 //! Method, formulas, parameter ranges and measured bench results: `docs/gap.md`.
@@ -35,16 +37,18 @@ mod candidates;
 mod diagnose;
 pub mod forces;
 mod html;
+mod learnable;
 mod locate;
 mod stats;
 
-pub use base::BaseEffect;
+pub use base::{BaseEffect, backbone_options};
 pub use candidates::{Candidate, CandidateFamily, MaterialFrame, principal_axis};
 pub use diagnose::{
     ControlFit, DiagnoseConfig, Diagnosis, Heldout, HowFar, RankedEffect, diagnose, evaluate,
     material_frame,
 };
 pub use html::render_html;
+pub use learnable::{Learnable, add_learnable};
 pub use locate::{Bin, CONTACT_HEIGHT_M, Trend, Where, locate, spearman};
 pub use stats::{Comparison, Verdict, VerdictRule, decide, paired_shrinkage};
 

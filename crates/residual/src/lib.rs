@@ -47,4 +47,6 @@ pub use error::{ResidualError, Result};
 pub use loss::{DISTANCE_EPS_CM, TrainLoss};
 pub use model::{INPUTS, ResidualNet};
 pub use rollout::{History, HybridRollout, RolloutOptions, SimGradient, hybrid_rollout, predict};
-pub use train::{Sample, StartFrom, StepStats, TrainConfig, TrainSet, Trainer, clearly_better};
+pub use train::{
+    BackboneOptionsFn, Sample, StartFrom, StepStats, TrainConfig, TrainSet, Trainer, clearly_better,
+};

@@ -11,7 +11,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use scene::{Protocol, Scene, SceneConfig, Window};
 use serde::{Deserialize, Serialize};
-use springs::{Backbone, SpringParams, State};
+use springs::{Backbone, BackboneOptions, SpringParams, State};
 
 mod holdout;
 
@@ -141,12 +141,16 @@ impl Trajectory {
     }
 }
 
+/// Builds the options (extra force terms, masses) of every backbone a [`TrainSet`] makes.
+pub type BackboneOptionsFn = std::sync::Arc<dyn Fn() -> BackboneOptions + Send + Sync>;
+
 /// The training episodes of a dataset with the fitted backbone.
 pub struct TrainSet {
     episodes: Vec<TrainEpisode>,
     meta: dataset::DatasetMeta,
     params: SpringParams,
     scene_cfg: SceneConfig,
+    options: BackboneOptionsFn,
 }
 
 /// One training rollout: a scene over a short window, its history and its backbone.
@@ -182,12 +186,26 @@ impl TrainSet {
         scene_cfg: &SceneConfig,
         protocol: Protocol,
     ) -> Result<Self> {
+        let options: BackboneOptionsFn = std::sync::Arc::new(BackboneOptions::default);
+        Self::with_backbone_options(data, split, params, scene_cfg, protocol, options)
+    }
+
+    /// As [`TrainSet::with_protocol`] for a backbone with extra force terms: `options` builds
+    /// them for every backbone the set makes (a backbone with effects from a diagnosis).
+    pub fn with_backbone_options(
+        data: &Dataset,
+        split: Split,
+        params: &SpringParams,
+        scene_cfg: &SceneConfig,
+        protocol: Protocol,
+        options: BackboneOptionsFn,
+    ) -> Result<Self> {
         let mut episodes = Vec::new();
         for i in data.split_indices(split) {
             let episode = data.load_episode(i)?;
             let window = protocol.window(episode.frames())?;
             let base = Scene::new(&data.meta, &episode, window, scene_cfg)?;
-            let backbone = base.backbone(params, &base.sim_config(), Default::default())?;
+            let backbone = base.backbone(params, &base.sim_config(), options())?;
             let history = History::from_episode(&base, &episode, data.meta.fps)?;
             episodes.push(TrainEpisode {
                 index: i,
@@ -208,6 +226,7 @@ impl TrainSet {
             meta: data.meta.clone(),
             params: *params,
             scene_cfg: scene_cfg.clone(),
+            options,
         })
     }
 
@@ -357,7 +376,7 @@ impl TrainSet {
                 let backbone = if scene.particles() == ep.base.particles() {
                     None
                 } else {
-                    Some(scene.backbone(&self.params, &scene.sim_config(), Default::default())?)
+                    Some(scene.backbone(&self.params, &scene.sim_config(), (self.options)())?)
                 };
                 let history = History::from_episode(&scene, &ep.episode, self.meta.fps)?;
                 (scene, history, backbone)

@@ -35,6 +35,7 @@ impl TrainSet {
             meta: self.meta.clone(),
             params: self.params,
             scene_cfg: self.scene_cfg.clone(),
+            options: self.options.clone(),
         })
     }
 
