@@ -130,7 +130,7 @@ pub fn write_report(out: &Path, diagnosis: &Diagnosis, title: &str) -> anyhow::R
 /// Per held-out episode, the MDE (cm, mean over steps) of the backbone with the network and of
 /// the backbone alone. An episode whose hybrid rollout fails gets the backbone's error (with a
 /// warning), so a failure cannot make the network look better.
-fn network_errors(
+pub(crate) fn network_errors(
     data: &Dataset,
     protocol: Protocol,
     params: &springs::SpringParams,

@@ -31,6 +31,7 @@ use world::{EffectKind, Effects, ObjectKind};
 
 use super::{scenes, write_report};
 use crate::cmd_fit::BoundsArg;
+use crate::common::{BackboneFile, backbone_path, read_residual};
 use crate::report::write_json;
 
 /// Which cases run on which object.
@@ -150,6 +151,16 @@ pub struct DiagnoseBenchArgs {
     /// Gripper motions of every generated dataset (`everyday` or `probing`; see `gen`).
     #[arg(long, default_value_t = world::MotionStyle::Everyday)]
     pub motion: world::MotionStyle,
+    /// Minutes of residual-network training per case listed in `--network-cases` (0: none).
+    /// The network learns on top of the object's base model on the case's training episodes
+    /// (`cargo xtask train` defaults, both threads) and joins the diagnosis
+    /// (`gap::add_learnable`): a `none` verdict becomes `unknown` when it beats the control
+    /// significantly.
+    #[arg(long, default_value_t = 0.0)]
+    pub network_minutes: f64,
+    /// Cases that get a network when `--network-minutes` > 0 (comma-separated, as `--cases`).
+    #[arg(long, default_value = "none,magnet")]
+    pub network_cases: String,
     /// Where generated datasets and reports go.
     #[arg(long, default_value = "target/diagnose-bench")]
     pub work: PathBuf,
@@ -241,6 +252,8 @@ pub struct BenchCase {
     pub recovered: Option<f64>,
     /// Wall time of the diagnosis, s.
     pub diagnose_wall_s: f64,
+    /// The trained network's comparison (`--network-minutes`), when this case got one.
+    pub network: Option<gap::Learnable>,
 }
 
 /// Bench summary.
@@ -347,7 +360,10 @@ fn split(data: &Dataset) -> anyhow::Result<(Vec<Scene>, Vec<Scene>)> {
     ))
 }
 
-fn fit_backbone(train: &[Scene], args: &DiagnoseBenchArgs) -> anyhow::Result<SpringParams> {
+fn fit_backbone(
+    train: &[Scene],
+    args: &DiagnoseBenchArgs,
+) -> anyhow::Result<(SpringParams, fit::FitOutcome, FitConfig)> {
     let family = BackboneFamily::new(args.bounds.bounds())?;
     let cfg = FitConfig {
         population: 8,
@@ -358,7 +374,7 @@ fn fit_backbone(train: &[Scene], args: &DiagnoseBenchArgs) -> anyhow::Result<Spr
         rescore: args.rescore,
     };
     let out = fit::fit(train, &family, &cfg, None, &mut |_| {})?;
-    Ok(BackboneFamily::params(&out.best))
+    Ok((BackboneFamily::params(&out.best), out, cfg))
 }
 
 fn diagnose(
@@ -419,12 +435,12 @@ fn verdict_shrinkage(d: &Diagnosis) -> Option<f64> {
 fn base_model(
     object: ObjectKind,
     args: &DiagnoseBenchArgs,
-) -> anyhow::Result<(ObjectModel, Vec<BaseEffect>)> {
+) -> anyhow::Result<(ObjectModel, Vec<BaseEffect>, BackboneFile)> {
     let t0 = Instant::now();
     let dir = args.work.join(format!("{object}-none"));
     let data = generate(object, Effects::none(), args.seed, args, &dir)?;
     let (train, val) = split(&data)?;
-    let backbone = fit_backbone(&train, args)?;
+    let (backbone, outcome, fit_cfg) = fit_backbone(&train, args)?;
     let (mut start, mut base) = (backbone, Vec::new());
     let mut steps = Vec::new();
     let last = loop {
@@ -481,7 +497,59 @@ fn base_model(
         m.train_mde_without_effect_cm,
         m.wall_s
     );
-    Ok((m, base))
+    // The base model as a run's backbone file, for the networks of `--network-minutes`.
+    let file = BackboneFile {
+        model: "spring-mass".into(),
+        dataset: dir.display().to_string(),
+        protocol: Protocol::Paper.name().into(),
+        params: m.model,
+        fit: outcome,
+        config: fit_cfg,
+        wall_s: m.wall_s,
+        session_wall_s: m.wall_s,
+        effects: base.clone(),
+    };
+    Ok((m, base, file))
+}
+
+/// Trains a residual network on top of `file`'s model on `data` for `minutes` (run directory
+/// `run`) and adds it to the diagnosis `d`.
+fn add_network(
+    d: &mut Diagnosis,
+    data: &Dataset,
+    file: &BackboneFile,
+    run: &Path,
+    minutes: f64,
+) -> anyhow::Result<()> {
+    #[derive(clap::Parser)]
+    struct Train {
+        #[command(flatten)]
+        args: crate::cmd_train::TrainArgs,
+    }
+    std::fs::create_dir_all(run)?;
+    write_json(&backbone_path(run), file)?;
+    let argv = [
+        "train".to_string(),
+        "--data".into(),
+        data.root.display().to_string(),
+        "--run".into(),
+        run.display().to_string(),
+        "--max-minutes".into(),
+        minutes.to_string(),
+        "--threads".into(),
+        "2".into(),
+        "--restart".into(),
+        "--quiet".into(),
+    ];
+    let train = <Train as clap::Parser>::try_parse_from(argv)?;
+    crate::cmd_train::run(&train.args)?;
+    let net = read_residual(run)?
+        .ok_or_else(|| anyhow::anyhow!("training wrote no network to {}", run.display()))?;
+    let options = file.options_for(data, Protocol::Paper)?;
+    let (network, alone) =
+        super::network_errors(data, Protocol::Paper, &file.params, &options, &net)?;
+    gap::add_learnable(d, &network, &alone)?;
+    Ok(())
 }
 
 /// Step 4's calibration: generates the effect at each scale of the ladder until the control
@@ -562,6 +630,24 @@ pub fn run_bench(args: &DiagnoseBenchArgs) -> anyhow::Result<BenchSummary> {
         !scales.is_empty() && scales.iter().all(|s| s.is_finite() && *s > 0.0),
         "--scales needs positive numbers"
     );
+    anyhow::ensure!(
+        args.network_minutes.is_finite() && args.network_minutes >= 0.0,
+        "--network-minutes must be a number >= 0 (got {})",
+        args.network_minutes
+    );
+    let network_cases: Vec<String> = args
+        .network_cases
+        .split(',')
+        .map(|c| c.trim().to_string())
+        .collect();
+    if args.network_minutes > 0.0
+        && let Some(c) = network_cases.iter().find(|c| !cases.contains(c))
+    {
+        anyhow::bail!(
+            "--network-cases: `{c}` is not one of the bench's cases ({})",
+            cases.join(",")
+        );
+    }
     let mut objects = Vec::new();
     let mut out: Vec<BenchCase> = Vec::new();
     let save = |objects: &Vec<ObjectModel>, out: &Vec<BenchCase>| -> anyhow::Result<()> {
@@ -573,7 +659,7 @@ pub fn run_bench(args: &DiagnoseBenchArgs) -> anyhow::Result<BenchSummary> {
     };
     for name in args.objects.split(',') {
         let object: ObjectKind = name.trim().parse()?;
-        let (model, base) = base_model(object, args)?;
+        let (model, base, file) = base_model(object, args)?;
         let e0 = model.mde_without_effect_cm;
         objects.push(model.clone());
         save(&objects, &out)?;
@@ -599,8 +685,33 @@ pub fn run_bench(args: &DiagnoseBenchArgs) -> anyhow::Result<BenchSummary> {
             };
             let (train, val) = split(&data)?;
             let td = Instant::now();
-            let d = diagnose(&train, &val, &model.model, &base, args)?;
+            let mut d = diagnose(&train, &val, &model.model, &base, args)?;
             let wall = td.elapsed().as_secs_f64();
+            let mut network_wall = 0.0;
+            if args.network_minutes > 0.0 && network_cases.contains(truth) {
+                let tn = Instant::now();
+                add_network(
+                    &mut d,
+                    &data,
+                    &file,
+                    &dir.join("pgrd"),
+                    args.network_minutes,
+                )?;
+                if let Some(l) = &d.learnable {
+                    println!(
+                        "{object:<6} {truth:<24} network: held-out MDE {:.3} cm (its backbone {:.3}); against {}: {:+.1}% [{:+.1}, {:+.1}]{} ({:.0} s)",
+                        l.network_mde_cm,
+                        l.backbone_mde_cm,
+                        l.model,
+                        100.0 * l.vs_model.shrinkage,
+                        100.0 * l.vs_model.ci95[0],
+                        100.0 * l.vs_model.ci95[1],
+                        if l.changed_verdict { " -> unknown" } else { "" },
+                        tn.elapsed().as_secs_f64()
+                    );
+                }
+                network_wall = tn.elapsed().as_secs_f64();
+            }
             write_report(
                 &dir.join("report"),
                 &d,
@@ -639,6 +750,7 @@ pub fn run_bench(args: &DiagnoseBenchArgs) -> anyhow::Result<BenchSummary> {
                 ci95: truth_entry.map(|r| r.ci95),
                 recovered: after.filter(|_| gap > 0.0).map(|a| (before - a) / gap),
                 diagnose_wall_s: wall,
+                network: d.learnable.clone(),
             };
             let raise = case
                 .ladder
@@ -669,7 +781,7 @@ pub fn run_bench(args: &DiagnoseBenchArgs) -> anyhow::Result<BenchSummary> {
                     _ => "-".into(),
                 },
                 wall,
-                t.elapsed().as_secs_f64() - wall
+                t.elapsed().as_secs_f64() - wall - network_wall
             );
             out.push(case);
             save(&objects, &out)?;
@@ -774,6 +886,34 @@ mod tests {
                 assert!(name.parse::<EffectKind>().is_ok(), "{object}: {name}");
             }
         }
+    }
+
+    #[test]
+    fn network_cases_outside_the_bench_are_refused_before_any_work() {
+        #[derive(clap::Parser)]
+        struct Bench {
+            #[command(flatten)]
+            args: DiagnoseBenchArgs,
+        }
+        let work = std::env::temp_dir().join(format!("pgrd-bench-nc-{}", std::process::id()));
+        let parse = |cases: &str| {
+            <Bench as clap::Parser>::try_parse_from([
+                "bench",
+                "--cases",
+                "none,drag",
+                "--network-minutes",
+                "1",
+                "--network-cases",
+                cases,
+                "--work",
+                work.to_str().unwrap(),
+            ])
+            .unwrap()
+            .args
+        };
+        let e = run_bench(&parse("none,magnet")).unwrap_err().to_string();
+        assert!(e.contains("`magnet`") && e.contains("none,drag"), "{e}");
+        assert!(!work.exists(), "nothing is generated before the check");
     }
 
     #[test]

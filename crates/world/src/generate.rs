@@ -202,8 +202,9 @@ pub struct Truth {
     /// such files).
     #[serde(default)]
     pub gaussian_particles: usize,
-    /// How the gripper moved (absent in files written before styles existed: everyday).
-    #[serde(default)]
+    /// How the gripper moved (written only when not everyday, so everyday datasets and those
+    /// written before styles existed have the same `truth.json`).
+    #[serde(default, skip_serializing_if = "MotionStyle::is_everyday")]
     pub motion: MotionStyle,
     /// The recordings.
     pub recordings: Vec<RecordingInfo>,

@@ -29,6 +29,11 @@ pub enum MotionStyle {
 }
 
 impl MotionStyle {
+    /// Whether this is the default style (for serde's `skip_serializing_if`).
+    pub fn is_everyday(&self) -> bool {
+        *self == MotionStyle::Everyday
+    }
+
     /// The style's command-line name.
     pub fn name(self) -> &'static str {
         match self {
