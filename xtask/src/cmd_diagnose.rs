@@ -127,6 +127,24 @@ pub fn write_report(out: &Path, diagnosis: &Diagnosis, title: &str) -> anyhow::R
         .with_context(|| format!("writing {}", out.join("report.html").display()))
 }
 
+/// One line on a diagnosis's network comparison ([`gap::Learnable`]).
+pub(crate) fn learnable_line(l: &gap::Learnable) -> String {
+    format!(
+        "residual network: held-out MDE {:.3} cm (its backbone {:.3} cm); against {}: {:+.1}% [{:+.1}, {:+.1}]{}",
+        l.network_mde_cm,
+        l.backbone_mde_cm,
+        l.model,
+        100.0 * l.vs_model.shrinkage,
+        100.0 * l.vs_model.ci95[0],
+        100.0 * l.vs_model.ci95[1],
+        if l.changed_verdict {
+            " -> verdict unknown"
+        } else {
+            ""
+        }
+    )
+}
+
 /// Per held-out episode, the MDE (cm, mean over steps) of the backbone with the network and of
 /// the backbone alone. An episode whose hybrid rollout fails gets the backbone's error (with a
 /// warning), so a failure cannot make the network look better.
@@ -186,20 +204,7 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
             network_errors(&data, protocol, &backbone.params, &options, &net)?;
         gap::add_learnable(&mut d, &network, &backbone_alone)?;
         if let Some(l) = &d.learnable {
-            println!(
-                "  residual network: held-out MDE {:.3} cm (its backbone {:.3} cm); against {}: {:+.1}% [{:+.1}, {:+.1}]{}",
-                l.network_mde_cm,
-                l.backbone_mde_cm,
-                l.model,
-                100.0 * l.vs_model.shrinkage,
-                100.0 * l.vs_model.ci95[0],
-                100.0 * l.vs_model.ci95[1],
-                if l.changed_verdict {
-                    " -> verdict unknown"
-                } else {
-                    ""
-                }
-            );
+            println!("  {}", learnable_line(l));
         }
     }
     let title = format!("{} ({})", data.meta.object, args.data.display());

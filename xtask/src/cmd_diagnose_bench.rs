@@ -699,14 +699,8 @@ pub fn run_bench(args: &DiagnoseBenchArgs) -> anyhow::Result<BenchSummary> {
                 )?;
                 if let Some(l) = &d.learnable {
                     println!(
-                        "{object:<6} {truth:<24} network: held-out MDE {:.3} cm (its backbone {:.3}); against {}: {:+.1}% [{:+.1}, {:+.1}]{} ({:.0} s)",
-                        l.network_mde_cm,
-                        l.backbone_mde_cm,
-                        l.model,
-                        100.0 * l.vs_model.shrinkage,
-                        100.0 * l.vs_model.ci95[0],
-                        100.0 * l.vs_model.ci95[1],
-                        if l.changed_verdict { " -> unknown" } else { "" },
+                        "{object:<6} {truth:<24} {} ({:.0} s)",
+                        super::learnable_line(l),
                         tn.elapsed().as_secs_f64()
                     );
                 }

@@ -302,8 +302,8 @@ pub fn render_html(d: &Diagnosis, title: &str) -> String {
             l.network_mde_cm,
             l.backbone_mde_cm,
             if l.changed_verdict {
-                "; the network beats the control by more than any library effect can explain, \
-                 so the verdict is <b>unknown</b>"
+                "; no library effect helps significantly, but the network beats the control by \
+                 at least the probe margin, so the verdict is <b>unknown</b>"
             } else {
                 ""
             }
