@@ -180,6 +180,28 @@ pub(crate) fn network_errors(
     Ok(rows.into_iter().unzip())
 }
 
+/// `--write-run` must not replace the diagnosed run's own backbone, nor put a backbone under a
+/// network trained on another one; checked before the diagnosis runs.
+fn check_write_run(dir: &Path, run: &Path) -> anyhow::Result<()> {
+    let same = match (std::fs::canonicalize(dir), std::fs::canonicalize(run)) {
+        (Ok(a), Ok(b)) => a == b,
+        _ => false,
+    };
+    anyhow::ensure!(
+        !same,
+        "--write-run {} is the diagnosed run itself; name a new directory",
+        dir.display()
+    );
+    let net = dir.join("residual.safetensors");
+    anyhow::ensure!(
+        !net.exists(),
+        "--write-run {}: it holds a residual network trained on another backbone ({}); name a new directory",
+        dir.display(),
+        net.display()
+    );
+    Ok(())
+}
+
 /// Runs `diagnose`.
 pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
     let t0 = Instant::now();
@@ -188,6 +210,9 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
     let protocol: Protocol = args.protocol.into();
     let train = scenes(&data, Split::Train, protocol)?;
     let val = scenes(&data, Split::Val, protocol)?;
+    if let Some(dir) = &args.write_run {
+        check_write_run(dir, &args.run)?;
+    }
     let config = config_from(args, &backbone.effects)?;
     let quiet = args.quiet;
     let d = gap::diagnose(&train, &val, &backbone.params, &config, &mut |line| {
