@@ -7,8 +7,8 @@ use anyhow::Context;
 use glam::Vec3;
 use plan::render::{Frame, render, view_bounds};
 use plan::{
-    ForwardModel, LoopSettings, Mppi, Pgrd, SpringMass, Task, TaskConfig, TaskKind, Trajectory,
-    run_closed_loop,
+    ForwardModel, LoopSettings, Mppi, Pgrd, SpringMass, System, Task, TaskConfig, TaskKind,
+    Trajectory, WorldOracle, run_closed_loop,
 };
 use serde::Serialize;
 
@@ -23,6 +23,9 @@ pub enum ModelArg {
     SpringMass,
     /// Backbone plus the run's residual network.
     Pgrd,
+    /// The reference world itself, a perfect model: checks whether the planner can solve the
+    /// task at all (not a model a user could have).
+    World,
 }
 
 /// `--resolution` of the world's rope.
@@ -73,6 +76,10 @@ pub struct PlanArgs {
     /// Override the task's step limit.
     #[arg(long)]
     pub max_steps: Option<usize>,
+    /// Run every trial to the step limit, also after it succeeded (default: stop at success);
+    /// success is then judged on the final state.
+    #[arg(long)]
+    pub full_length: bool,
     /// Earlier reports of the same task whose models' curves join the plot (e.g. a slow model
     /// run separately).
     #[arg(long)]
@@ -153,7 +160,10 @@ pub fn run(args: &PlanArgs) -> anyhow::Result<()> {
             } else {
                 0
             };
-            Task::build(kind, &cfg).with_context(|| format!("building {kind} trial {t}"))
+            let mut task =
+                Task::build(kind, &cfg).with_context(|| format!("building {kind} trial {t}"))?;
+            task.stop_at_success = !args.full_length;
+            Ok(task)
         })
         .collect::<anyhow::Result<_>>()?;
     let mut reports = Vec::new();
@@ -162,17 +172,23 @@ pub fn run(args: &PlanArgs) -> anyhow::Result<()> {
         let mut trials = Vec::new();
         let mut trajectories = Vec::new();
         for (t, task) in tasks.iter().enumerate() {
-            let bb = task.backbone(backbone.params)?;
-            let model: Box<dyn ForwardModel> = match (m, &net) {
-                (ModelArg::Pgrd, Some(net)) => Box::new(Pgrd::new(bb, net.clone())),
-                _ => Box::new(SpringMass::new(bb)),
-            };
             let seed = args.seed + t as u64;
-            let (mut report, traj) = run_trial(model.as_ref(), task, seed, args.max_steps)?;
+            let (mut report, traj) = if m == ModelArg::World {
+                let oracle = WorldOracle::new(task.start.clone());
+                run_trial(&oracle, &mut oracle.system(), task, seed, args.max_steps)?
+            } else {
+                let bb = task.backbone(backbone.params)?;
+                let model: Box<dyn ForwardModel> = match (m, &net) {
+                    (ModelArg::Pgrd, Some(net)) => Box::new(Pgrd::new(bb, net.clone())),
+                    _ => Box::new(SpringMass::new(bb)),
+                };
+                let mut world = task.start.clone();
+                run_trial(model.as_ref(), &mut world, task, seed, args.max_steps)?
+            };
             report.trial = t;
             eprintln!(
                 "{kind} {} trial {t}: {} in {} steps, final Chamfer {:.2} cm, {:.2} s per replan",
-                model.name(),
+                model_name(m),
                 if report.success { "success" } else { "failure" },
                 report.steps,
                 report.final_chamfer_cm,
@@ -290,12 +306,14 @@ fn model_name(m: ModelArg) -> &'static str {
     match m {
         ModelArg::SpringMass => "spring-mass",
         ModelArg::Pgrd => "pgrd",
+        ModelArg::World => "world",
     }
 }
 
 /// Runs one closed-loop trial and summarises it.
 fn run_trial(
     model: &dyn ForwardModel,
+    world: &mut dyn System,
     task: &Task,
     seed: u64,
     max_steps: Option<usize>,
@@ -304,14 +322,13 @@ fn run_trial(
     cfg.seed = seed;
     let mut mppi = Mppi::new(cfg, 1)?;
     let objective = task.objective()?;
-    let mut world = task.start.clone();
     let settings = LoopSettings {
         max_steps: max_steps.unwrap_or(task.max_steps),
         dt: 0.1,
     };
     let done =
         |x: &[Vec3], g: &[Vec3]| task.stop_at_success && task.success(x, g[0]).unwrap_or(false);
-    let traj = run_closed_loop(model, &mut world, &mut mppi, &objective, settings, &done)?;
+    let traj = run_closed_loop(model, world, &mut mppi, &objective, settings, &done)?;
     let last = traj.observed.last().context("empty trajectory")?;
     let grip = traj.grippers.last().context("empty trajectory")?[0];
     let walls: Vec<f64> = traj.replans.iter().map(|r| r.wall_s).collect();

@@ -160,6 +160,11 @@ pub struct TrainArgs {
     /// rollout). See docs/residual.md.
     #[arg(long, value_enum, default_value_t = SimGradientArg::Detached)]
     pub sim_gradient: SimGradientArg,
+    /// Keep an exponential moving average of the weights with this decay per optimiser step
+    /// (0: off; e.g. 0.995 averages over about 200 steps) and save, select and report the
+    /// averaged network instead of the last iterate.
+    #[arg(long, default_value_t = 0.0)]
+    pub ema_decay: f64,
     /// Print only the final line.
     #[arg(long)]
     pub quiet: bool,
@@ -196,14 +201,14 @@ impl Selection {
         if self.steps.last() == Some(&trainer.step) {
             return Ok(());
         }
-        let per_episode = held.rollout_mde_cm(Some(&trainer.net))?;
+        let per_episode = trainer.with_averaged(|net| held.rollout_mde_cm(Some(net)))??;
         let mde = per_episode.iter().sum::<f64>() / per_episode.len().max(1) as f64;
         self.steps.push(trainer.step);
         self.mde_cm.push(mde.is_finite().then_some(mde));
         if self.steps.len() == 1 || clearly_better(&per_episode, &self.best_episode_mde_cm) {
             self.best_step = trainer.step;
             self.best_episode_mde_cm = per_episode;
-            trainer.net.save(&run.join("residual.safetensors"))?;
+            trainer.with_averaged(|net| net.save(&run.join("residual.safetensors")))??;
         }
         Ok(())
     }
@@ -339,6 +344,7 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
             SimGradientArg::Detached => SimGradient::Detached,
             SimGradientArg::FreeFlight => SimGradient::FreeFlight,
         },
+        ema_decay: args.ema_decay,
     };
     let unit = train_cfg.loss.unit();
     let net = ResidualNet::new(&model_cfg, args.seed)?;
@@ -426,7 +432,7 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
      -> anyhow::Result<()> {
         trainer.save_checkpoint(&ckpt)?;
         if selection.is_none() {
-            trainer.net.save(&args.run.join("residual.safetensors"))?;
+            trainer.with_averaged(|net| net.save(&args.run.join("residual.safetensors")))??;
         }
         let session = t0.elapsed().as_secs_f64();
         write_json(
@@ -491,7 +497,7 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
                 .join("snapshots")
                 .join(format!("step_{:05}", trainer.step));
             std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
-            trainer.net.save(&dir.join("residual.safetensors"))?;
+            trainer.with_averaged(|net| net.save(&dir.join("residual.safetensors")))??;
         }
         if let (Some(held), Some(sel)) = (&held, &mut selection)
             && trainer.step % sel.every == 0

@@ -23,6 +23,12 @@ const ROPE_GRASP: Vec3 = Vec3::new(-0.4375, 0.0, 0.0);
 const GRIPPER_CLEARANCE_M: f32 = 0.012;
 /// Lowest gripper height allowed, m: the held end must not be pushed into the table.
 const FLOOR_M: f32 = 0.008;
+/// How far `rope-rotate` turns the rope about its far end, degrees. The largest of 50°, 40°,
+/// 30°, 20° at which MPPI with the world itself as its model (`WorldOracle`) reached the
+/// target in 3 of 3 trials: at 30–50° the dragged, plastic rope's shape depends on the exact
+/// path and the oracle ended 2.3–4 cm away (`docs/plan.md`), so the task tested the planner,
+/// not the model.
+const ROTATE_DEG: f32 = 20.0;
 
 /// A planning task.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
@@ -32,7 +38,7 @@ pub enum TaskKind {
     RopeLift,
     /// Lower a lifted rope onto the table at another place.
     RopeLower,
-    /// Rotate the rope on the table about its far end by 50° (the far end roughly fixed).
+    /// Rotate the rope on the table about its far end by 20° (the far end roughly fixed).
     RopeRotate,
     /// Drag the rope's end into a curved shape on the table.
     RopeCurve,
@@ -207,8 +213,9 @@ pub struct Task {
     pub slot: Option<Slot>,
     /// Most executed steps per trial.
     pub max_steps: usize,
-    /// Whether a trial ends as soon as it succeeds (rerouting) or always runs `max_steps`
-    /// steps (the simple tasks, so that final distances compare like for like).
+    /// Whether a trial ends as soon as it succeeds (the default for every task: the closed
+    /// loop runs until done or the step limit) or always runs `max_steps` steps (so that final
+    /// distances compare like for like).
     pub stop_at_success: bool,
     /// Success threshold of the simple tasks: final Chamfer distance (two-sided sum) below it, m.
     pub success_chamfer_m: f64,
@@ -257,15 +264,15 @@ impl Task {
             TaskKind::RopeLift => vec![g + Vec3::new(0.0, 0.0, 0.30)],
             TaskKind::RopeLower => vec![Vec3::new(g0.x + 0.25, g0.y + 0.2, 0.02)],
             TaskKind::RopeRotate => {
-                // Straight to the point 50° around the far end on the circle through the
-                // gripper, at 2 cm height: the rope swings about its far end.
+                // Straight to the point ROTATE_DEG around the far end on the circle through
+                // the gripper, at 2 cm height: the rope swings about its far end.
                 let far = start
                     .observe()
                     .into_iter()
                     .max_by(|a, b| a.x.total_cmp(&b.x))
                     .unwrap_or(g);
                 let r = Vec3::new(g.x - far.x, g.y - far.y, 0.0).length();
-                let th = std::f32::consts::PI - 50f32.to_radians();
+                let th = std::f32::consts::PI - ROTATE_DEG.to_radians();
                 vec![Vec3::new(far.x + r * th.cos(), far.y + r * th.sin(), 0.02)]
             }
             TaskKind::RopeCurve => vec![g + Vec3::new(0.25, 0.35, 0.01)],
@@ -308,7 +315,7 @@ impl Task {
             workspace,
             slot,
             max_steps: if slot.is_some() { 80 } else { 30 },
-            stop_at_success: slot.is_some(),
+            stop_at_success: true,
             success_chamfer_m: 0.02,
         })
     }

@@ -61,6 +61,11 @@ pub struct TrainConfig {
     /// trained with [`SimGradient::Detached`]).
     #[serde(default)]
     pub sim_gradient: SimGradient,
+    /// Decay of the exponential moving average of the weights (0: off). With it on, the
+    /// averaged network, which starts at the step-0 weights, is what [`Trainer::with_averaged`]
+    /// evaluates: the average damps the step-to-step jumps of single Adam iterates.
+    #[serde(default)]
+    pub ema_decay: f64,
 }
 
 /// The state a training segment starts from.
@@ -96,6 +101,7 @@ impl Default for TrainConfig {
             refresh_every: 0,
             loss: TrainLoss::Mse,
             sim_gradient: SimGradient::Detached,
+            ema_decay: 0.0,
         }
     }
 }
@@ -440,6 +446,8 @@ pub struct Trainer {
     vars: Vec<(String, Var)>,
     m: Vec<Tensor>,
     v: Vec<Tensor>,
+    /// Moving average of the weights, when `cfg.ema_decay > 0`.
+    ema: Option<Vec<Tensor>>,
     starts: Option<Vec<Trajectory>>,
     guided: Option<Vec<Trajectory>>,
 }
@@ -457,6 +465,19 @@ impl Trainer {
             .map(|(_, v)| v.zeros_like())
             .collect::<candle_core::Result<Vec<_>>>()?;
         let v = m.clone();
+        if !(cfg.ema_decay.is_finite() && (0.0..1.0).contains(&cfg.ema_decay)) {
+            return Err(ResidualError::Input(format!(
+                "ema_decay {} is not in [0, 1)",
+                cfg.ema_decay
+            )));
+        }
+        let ema = (cfg.ema_decay > 0.0)
+            .then(|| {
+                vars.iter()
+                    .map(|(_, v)| v.as_tensor().copy())
+                    .collect::<candle_core::Result<Vec<_>>>()
+            })
+            .transpose()?;
         Ok(Trainer {
             net,
             cfg,
@@ -464,6 +485,7 @@ impl Trainer {
             vars,
             m,
             v,
+            ema,
             starts: None,
             guided: None,
         })
@@ -603,6 +625,10 @@ impl Trainer {
             let update = ((&self.m[i] / c1)? / ((&self.v[i] / c2)?.sqrt()? + EPS)?)?;
             let var = &self.vars[i].1;
             var.set(&(var.as_tensor() - (update * lr)?)?)?;
+            if let Some(ema) = &mut self.ema {
+                let d = self.cfg.ema_decay;
+                ema[i] = ((&ema[i] * d)? + (var.as_tensor() * (1.0 - d))?)?;
+            }
         }
         Ok(StepStats {
             loss: value,
@@ -617,6 +643,27 @@ impl Trainer {
         })
     }
 
+    /// Runs `f` on the network with the moving-average weights (`ema_decay > 0`) or, with the
+    /// average off, on the current weights; the current weights are restored afterwards.
+    pub fn with_averaged<R>(&self, f: impl FnOnce(&ResidualNet) -> R) -> Result<R> {
+        let Some(ema) = &self.ema else {
+            return Ok(f(&self.net));
+        };
+        let current = self
+            .vars
+            .iter()
+            .map(|(_, v)| v.as_tensor().copy())
+            .collect::<candle_core::Result<Vec<_>>>()?;
+        for ((_, var), avg) in self.vars.iter().zip(ema) {
+            var.set(avg)?;
+        }
+        let out = f(&self.net);
+        for ((_, var), cur) in self.vars.iter().zip(&current) {
+            var.set(cur)?;
+        }
+        Ok(out)
+    }
+
     /// Writes parameters and Adam moments to `path` (safetensors) and the step count beside it
     /// (`path` with extension `json`).
     pub fn save_checkpoint(&self, path: &Path) -> Result<()> {
@@ -625,6 +672,9 @@ impl Trainer {
             map.insert(format!("param.{name}"), var.as_tensor().clone());
             map.insert(format!("adam_m.{name}"), self.m[i].clone());
             map.insert(format!("adam_v.{name}"), self.v[i].clone());
+            if let Some(ema) = &self.ema {
+                map.insert(format!("ema.{name}"), ema[i].clone());
+            }
         }
         // The segment starts are part of the state: a resumed run must sample from the same
         // trajectories as an uninterrupted one.
@@ -659,6 +709,9 @@ impl Trainer {
             var.set(&get(format!("param.{name}"))?)?;
             self.m[i] = get(format!("adam_m.{name}"))?;
             self.v[i] = get(format!("adam_v.{name}"))?;
+            if let Some(ema) = &mut self.ema {
+                ema[i] = get(format!("ema.{name}"))?;
+            }
         }
         let mut starts = Vec::new();
         while let (Some(x), Some(v)) = (
