@@ -7,8 +7,8 @@ use anyhow::Context;
 use glam::Vec3;
 use plan::render::{Frame, render, view_bounds};
 use plan::{
-    ForwardModel, LoopSettings, Mppi, Pgrd, SpringMass, System, Task, TaskConfig, TaskKind,
-    Trajectory, WorldOracle, run_closed_loop,
+    ForwardModel, LoopSettings, ModelState, Mppi, Pgrd, SpringMass, System, Task, TaskConfig,
+    TaskKind, Trajectory, WorldOracle, run_closed_loop,
 };
 use serde::Serialize;
 
@@ -99,6 +99,9 @@ struct TrialReport {
     failed_rollouts: usize,
     replan_wall_s_mean: f64,
     replan_wall_s_max: f64,
+    /// Per learned model: its prediction error along this trial's executed path (see
+    /// [`path_error_cm`]), cm; null where the path was too short or a prediction failed.
+    path_error_cm: std::collections::BTreeMap<&'static str, Option<f64>>,
 }
 
 /// One model's results.
@@ -111,6 +114,9 @@ struct ModelReport {
     /// early (done) holds its last value.
     mean_curve_cm: Vec<f64>,
     final_chamfer_cm_mean: f64,
+    /// Per learned model, the mean of the trials' `path_error_cm` (trials without one left
+    /// out), cm.
+    path_error_cm_mean: std::collections::BTreeMap<&'static str, f64>,
     wall_s: f64,
 }
 
@@ -186,6 +192,12 @@ pub fn run(args: &PlanArgs) -> anyhow::Result<()> {
                 run_trial(model.as_ref(), &mut world, task, seed, args.max_steps)?
             };
             report.trial = t;
+            for (name, scorer) in scorers(task, backbone.params, net.as_ref())? {
+                report.path_error_cm.insert(
+                    name,
+                    path_error_cm(scorer.as_ref(), &traj, kind.mppi().horizon),
+                );
+            }
             eprintln!(
                 "{kind} {} trial {t}: {} in {} steps, final Chamfer {:.2} cm, {:.2} s per replan",
                 model_name(m),
@@ -219,8 +231,23 @@ pub fn run(args: &PlanArgs) -> anyhow::Result<()> {
         if let (Some(task), Some(traj)) = (tasks.first(), trajectories.first()) {
             write_gif(&gif, task, traj)?;
         }
+        let mut path_error_cm_mean = std::collections::BTreeMap::new();
+        for name in trials
+            .iter()
+            .flat_map(|t| t.path_error_cm.keys().copied())
+            .collect::<std::collections::BTreeSet<_>>()
+        {
+            let v: Vec<f64> = trials
+                .iter()
+                .filter_map(|t| t.path_error_cm.get(name).copied().flatten())
+                .collect();
+            if !v.is_empty() {
+                path_error_cm_mean.insert(name, v.iter().sum::<f64>() / v.len() as f64);
+            }
+        }
         reports.push(ModelReport {
             model: m,
+            path_error_cm_mean,
             successes: trials.iter().filter(|t| t.success).count(),
             final_chamfer_cm_mean: trials.iter().map(|t| t.final_chamfer_cm).sum::<f64>()
                 / trials.len().max(1) as f64,
@@ -291,12 +318,18 @@ pub fn run(args: &PlanArgs) -> anyhow::Result<()> {
         }),
     )?;
     for r in &reports {
+        let errors: Vec<String> = r
+            .path_error_cm_mean
+            .iter()
+            .map(|(name, e)| format!("{name} {e:.2} cm"))
+            .collect();
         println!(
-            "{kind} {}: {}/{} succeeded, final Chamfer {:.2} cm (mean)",
+            "{kind} {}: {}/{} succeeded, final Chamfer {:.2} cm (mean); prediction error along its paths: {}",
             model_name(r.model),
             r.successes,
             r.trials.len(),
-            r.final_chamfer_cm_mean
+            r.final_chamfer_cm_mean,
+            errors.join(", ")
         );
     }
     Ok(())
@@ -343,8 +376,59 @@ fn run_trial(
         failed_rollouts: traj.replans.iter().map(|r| r.failed).sum(),
         replan_wall_s_mean: walls.iter().sum::<f64>() / walls.len().max(1) as f64,
         replan_wall_s_max: walls.iter().copied().fold(0.0, f64::max),
+        path_error_cm: Default::default(),
     };
     Ok((report, traj))
+}
+
+/// The learned models a trial's executed path is scored with: spring-mass, and PGRD when the
+/// run has a network.
+fn scorers(
+    task: &Task,
+    params: springs::SpringParams,
+    net: Option<&std::sync::Arc<residual::ResidualNet>>,
+) -> anyhow::Result<Vec<(&'static str, Box<dyn ForwardModel>)>> {
+    let mut out: Vec<(&'static str, Box<dyn ForwardModel>)> = vec![(
+        "spring-mass",
+        Box::new(SpringMass::new(task.backbone(params)?)),
+    )];
+    if let Some(net) = net {
+        out.push((
+            "pgrd",
+            Box::new(Pgrd::new(task.backbone(params)?, net.clone())),
+        ));
+    }
+    Ok(out)
+}
+
+/// How well `model` predicts what the world did along an executed path: from every executed
+/// step k that has `horizon` more, the model starts from the observations up to k (as the
+/// planner does) and is driven along the executed gripper positions; the mean distance
+/// between predicted and observed points over the `horizon` steps, averaged over the starts,
+/// cm. This is the error of the predictions the planner relied on, on the motions it chose.
+fn path_error_cm(model: &dyn ForwardModel, traj: &Trajectory, horizon: usize) -> Option<f64> {
+    let n = traj.observed.len();
+    if horizon == 0 || n <= horizon {
+        return None;
+    }
+    let mut sum = 0.0;
+    let mut count = 0usize;
+    for k in 0..n - horizon {
+        let state = ModelState::from_frames(&traj.observed[k.saturating_sub(3)..=k], 0.1).ok()?;
+        let path = traj.grippers[k..=k + horizon].to_vec();
+        let actions = springs::Actions::new(path, vec![vec![true]; horizon + 1]).ok()?;
+        let predicted = model.rollout(&state, &actions).ok()?;
+        for (p, o) in predicted.iter().zip(&traj.observed[k + 1..=k + horizon]) {
+            sum += p
+                .iter()
+                .zip(o)
+                .map(|(a, b)| f64::from(a.distance(*b)))
+                .sum::<f64>()
+                / p.len().max(1) as f64;
+            count += 1;
+        }
+    }
+    (count > 0).then(|| 100.0 * sum / count as f64)
 }
 
 /// The labelled mean curves of another `plan` report of the same task.
