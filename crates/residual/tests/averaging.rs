@@ -4,21 +4,7 @@
 
 mod common;
 
-use dataset::{Dataset, Split};
-use residual::{ModelConfig, ResidualNet, TrainConfig, TrainSet, Trainer};
-use scene::SceneConfig;
-use springs::SpringParams;
-
-fn set() -> TrainSet {
-    let data = Dataset::open(common::fixture("rope")).unwrap();
-    TrainSet::new(
-        &data,
-        Split::Train,
-        &SpringParams::reference_rope(),
-        &SceneConfig::default(),
-    )
-    .unwrap()
-}
+use residual::{ModelConfig, ResidualNet, TrainConfig, Trainer};
 
 fn weights(net: &ResidualNet) -> Vec<Vec<f32>> {
     net.named_vars()
@@ -46,7 +32,7 @@ fn trainer(decay: f64) -> Trainer {
 
 #[test]
 fn the_average_follows_each_step_by_the_decay() {
-    let set = set();
+    let set = common::rope_train_set();
     let d = 0.9;
     let mut t = trainer(d);
     let w0 = weights(&t.net);
@@ -76,7 +62,7 @@ fn the_average_follows_each_step_by_the_decay() {
 
 #[test]
 fn without_averaging_the_current_weights_are_used() {
-    let set = set();
+    let set = common::rope_train_set();
     let mut t = trainer(0.0);
     t.train_step(&set).unwrap();
     assert_eq!(t.with_averaged(weights).unwrap(), weights(&t.net));
@@ -84,7 +70,7 @@ fn without_averaging_the_current_weights_are_used() {
 
 #[test]
 fn the_average_survives_a_checkpoint() {
-    let set = set();
+    let set = common::rope_train_set();
     let mut a = trainer(0.8);
     for _ in 0..2 {
         a.train_step(&set).unwrap();

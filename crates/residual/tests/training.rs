@@ -11,19 +11,6 @@ use residual::{
     ModelConfig, ResidualNet, RolloutOptions, Sample, TrainConfig, TrainLoss, TrainSet, Trainer,
     clearly_better, hybrid_rollout,
 };
-use scene::SceneConfig;
-use springs::SpringParams;
-
-fn set() -> TrainSet {
-    let data = Dataset::open(common::fixture("rope")).unwrap();
-    TrainSet::new(
-        &data,
-        Split::Train,
-        &SpringParams::reference_rope(),
-        &SceneConfig::default(),
-    )
-    .unwrap()
-}
 
 /// Mean rollout loss of `samples` (cm²).
 fn loss_of(net: &ResidualNet, set: &TrainSet, samples: &[Sample], steps: usize) -> f64 {
@@ -48,7 +35,7 @@ fn loss_of(net: &ResidualNet, set: &TrainSet, samples: &[Sample], steps: usize) 
 /// for the correction.)
 #[test]
 fn training_reduces_the_loss() {
-    let set = set();
+    let set = common::rope_train_set();
     let steps = 3;
     let mut rng = ChaCha8Rng::seed_from_u64(5);
     let samples: Vec<Sample> = (0..2)
@@ -117,7 +104,7 @@ fn mde_of(net: &ResidualNet, set: &TrainSet, samples: &[Sample], steps: usize) -
 /// rollouts' MDE (measured from the positions, not from the loss) falls by more than a third.
 #[test]
 fn training_with_the_distance_loss_reduces_the_mde() {
-    let set = set();
+    let set = common::rope_train_set();
     let steps = 3;
     let mut rng = ChaCha8Rng::seed_from_u64(5);
     let samples: Vec<Sample> = (0..2)
@@ -167,7 +154,7 @@ fn train_configs_without_a_loss_read_as_mse() {
 
 #[test]
 fn resuming_continues_exactly() {
-    let set = set();
+    let set = common::rope_train_set();
     let cfg = TrainConfig {
         iterations: 6,
         batch: 1,
@@ -251,7 +238,7 @@ fn held_out_episodes_are_spread_and_leave_the_rest() {
         "fixture has {} training episodes",
         all.len()
     );
-    let mut s = set();
+    let mut s = common::rope_train_set();
     assert!(s.hold_out(0).is_err());
     assert!(s.hold_out(all.len()).is_err());
     let held = s.hold_out(2).unwrap();
@@ -268,7 +255,7 @@ fn held_out_episodes_are_spread_and_leave_the_rest() {
 /// hybrid model's rollouts of independently built scenes.
 #[test]
 fn held_out_rollout_mde_is_the_evaluation_mde() {
-    let s = set();
+    let s = common::rope_train_set();
     let scenes = fixture_scenes();
     let refs: Vec<&scene::Scene> = scenes.iter().map(|(sc, _, _)| sc).collect();
     let backbone: Vec<_> = scenes

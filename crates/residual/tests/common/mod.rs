@@ -3,8 +3,9 @@
 
 use std::path::PathBuf;
 
+use dataset::Split;
 use dataset::{Dataset, Episode};
-use residual::History;
+use residual::{History, TrainSet};
 use scene::{Protocol, Scene, SceneConfig};
 use springs::{Backbone, SpringParams};
 
@@ -29,6 +30,18 @@ pub fn scene(name: &str, episode: usize) -> (Dataset, Episode, Scene, History, B
         )
         .unwrap();
     (data, ep, scene, history, bb)
+}
+
+/// The rope fixture's training split with the reference rope parameters.
+pub fn rope_train_set() -> TrainSet {
+    let data = Dataset::open(fixture("rope")).unwrap();
+    TrainSet::new(
+        &data,
+        Split::Train,
+        &SpringParams::reference_rope(),
+        &SceneConfig::default(),
+    )
+    .unwrap()
 }
 
 pub fn temp_dir(tag: &str) -> PathBuf {
