@@ -26,7 +26,7 @@ const FLOOR_M: f32 = 0.008;
 /// How far `rope-rotate` turns the rope about its far end, degrees. The largest of 50°, 40°,
 /// 30°, 20° at which MPPI with the world itself as its model (`WorldOracle`) reached the
 /// target in 3 of 3 trials: at 30–50° the dragged, plastic rope's shape depends on the exact
-/// path and the oracle ended 2.3–4 cm away (`docs/plan.md`), so the task tested the planner,
+/// path and the oracle ended 2.3–4.3 cm away (`docs/plan.md`), so the task tested the planner,
 /// not the model.
 const ROTATE_DEG: f32 = 20.0;
 
