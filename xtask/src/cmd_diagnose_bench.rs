@@ -114,6 +114,12 @@ pub struct DiagnoseBenchArgs {
     /// Held-out episodes per generated dataset.
     #[arg(long, default_value_t = 8)]
     pub val: usize,
+    /// Episodes cut from one continuous recording. The default 1 makes every episode its own
+    /// recording (its own placement and motion): episodes cut from one recording share 20
+    /// frames with their neighbours, so with 10 per recording the 8 held-out episodes were
+    /// one recording and the bootstrap over them treated correlated episodes as independent.
+    #[arg(long, default_value_t = 1)]
+    pub episodes_per_recording: usize,
     /// Tracked particles.
     #[arg(long, default_value_t = 60)]
     pub tracked: usize,
@@ -261,6 +267,8 @@ pub struct BenchCase {
 pub struct BenchSummary {
     /// Search bounds of the backbone fits (`reference` or `paper`).
     pub bounds: String,
+    /// Episodes cut from one recording in every generated dataset.
+    pub episodes_per_recording: usize,
     /// Share of in-library cases (target strength reached) with the right verdict.
     pub in_library_accuracy: f64,
     /// Same over every in-library case, target reached or not.
@@ -343,6 +351,7 @@ fn generate(
     let mut cfg = world::GenConfig::fixture(object);
     cfg.train_episodes = args.episodes;
     cfg.val_episodes = args.val;
+    cfg.episodes_per_recording = args.episodes_per_recording;
     cfg.tracked = args.tracked;
     cfg.seed = seed;
     cfg.effects = effects;
@@ -631,6 +640,10 @@ pub fn run_bench(args: &DiagnoseBenchArgs) -> anyhow::Result<BenchSummary> {
         "--scales needs positive numbers"
     );
     anyhow::ensure!(
+        args.episodes_per_recording >= 1,
+        "--episodes-per-recording must be at least 1"
+    );
+    anyhow::ensure!(
         args.network_minutes.is_finite() && args.network_minutes >= 0.0,
         "--network-minutes must be a number >= 0 (got {})",
         args.network_minutes
@@ -822,6 +835,7 @@ pub fn run_bench(args: &DiagnoseBenchArgs) -> anyhow::Result<BenchSummary> {
     }
     let summary = BenchSummary {
         bounds: args.bounds.name().to_string(),
+        episodes_per_recording: args.episodes_per_recording,
         in_library_accuracy: share(&lib_reached),
         in_library_accuracy_all: share(&lib_all),
         in_library_cases: [lib_reached.len(), lib_all.len()],
@@ -908,6 +922,42 @@ mod tests {
         let e = run_bench(&parse("none,magnet")).unwrap_err().to_string();
         assert!(e.contains("`magnet`") && e.contains("none,drag"), "{e}");
         assert!(!work.exists(), "nothing is generated before the check");
+    }
+
+    #[test]
+    fn held_out_episodes_come_from_their_own_recordings_by_default() {
+        #[derive(clap::Parser)]
+        struct Bench {
+            #[command(flatten)]
+            args: DiagnoseBenchArgs,
+        }
+        let parse = |extra: &[&str]| {
+            let mut argv = vec!["bench", "--episodes", "2", "--val", "3", "--tracked", "12"];
+            argv.extend_from_slice(extra);
+            <Bench as clap::Parser>::try_parse_from(argv).unwrap().args
+        };
+        let dir = std::env::temp_dir().join(format!("pgrd-bench-rec-{}", std::process::id()));
+        let recordings = |args: &DiagnoseBenchArgs| {
+            let effects = Effects::none();
+            let data = generate(ObjectKind::Rope, effects, 0, args, &dir).unwrap();
+            let text = std::fs::read_to_string(data.root.join("truth.json")).unwrap();
+            let truth: world::Truth = serde_json::from_str(&text).unwrap();
+            std::fs::remove_dir_all(&dir).unwrap();
+            truth.recordings.len()
+        };
+        assert_eq!(recordings(&parse(&[])), 5, "one recording per episode");
+        let shared = parse(&["--episodes-per-recording", "10"]);
+        assert_eq!(recordings(&shared), 2, "one train and one val recording");
+
+        let e = run_bench(&parse(&[
+            "--episodes-per-recording",
+            "0",
+            "--work",
+            "/nonexistent",
+        ]))
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("--episodes-per-recording"), "{e}");
     }
 
     #[test]
