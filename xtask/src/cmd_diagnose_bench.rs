@@ -896,17 +896,22 @@ mod tests {
         }
     }
 
-    #[test]
-    fn network_cases_outside_the_bench_are_refused_before_any_work() {
+    /// The bench's arguments as parsed from a command line (after the subcommand).
+    fn bench_args(argv: &[&str]) -> DiagnoseBenchArgs {
         #[derive(clap::Parser)]
         struct Bench {
             #[command(flatten)]
             args: DiagnoseBenchArgs,
         }
+        let argv = std::iter::once("bench").chain(argv.iter().copied());
+        <Bench as clap::Parser>::try_parse_from(argv).unwrap().args
+    }
+
+    #[test]
+    fn network_cases_outside_the_bench_are_refused_before_any_work() {
         let work = std::env::temp_dir().join(format!("pgrd-bench-nc-{}", std::process::id()));
         let parse = |cases: &str| {
-            <Bench as clap::Parser>::try_parse_from([
-                "bench",
+            bench_args(&[
                 "--cases",
                 "none,drag",
                 "--network-minutes",
@@ -916,8 +921,6 @@ mod tests {
                 "--work",
                 work.to_str().unwrap(),
             ])
-            .unwrap()
-            .args
         };
         let e = run_bench(&parse("none,magnet")).unwrap_err().to_string();
         assert!(e.contains("`magnet`") && e.contains("none,drag"), "{e}");
@@ -926,15 +929,10 @@ mod tests {
 
     #[test]
     fn held_out_episodes_come_from_their_own_recordings_by_default() {
-        #[derive(clap::Parser)]
-        struct Bench {
-            #[command(flatten)]
-            args: DiagnoseBenchArgs,
-        }
         let parse = |extra: &[&str]| {
-            let mut argv = vec!["bench", "--episodes", "2", "--val", "3", "--tracked", "12"];
+            let mut argv = vec!["--episodes", "2", "--val", "3", "--tracked", "12"];
             argv.extend_from_slice(extra);
-            <Bench as clap::Parser>::try_parse_from(argv).unwrap().args
+            bench_args(&argv)
         };
         let dir = std::env::temp_dir().join(format!("pgrd-bench-rec-{}", std::process::id()));
         let recordings = |args: &DiagnoseBenchArgs| {
