@@ -99,8 +99,16 @@ pub struct RankedEffect {
     pub shrinkage: f64,
     /// 95% bootstrap interval of the shrinkage over held-out episodes.
     pub ci95: [f64; 2],
-    /// Whether the verdict rule counts it as a significant improvement.
+    /// Whether the verdict rule counts it as a significant improvement: significant against
+    /// the control, and the effect itself carries the gain (`effect_itself` significant too).
     pub significant: bool,
+    /// The refit against the same refit with the effect switched off (its values at
+    /// [`Candidate::neutral`], the shared parameters as refitted). A candidate can beat the
+    /// control through its refit of stiffness, damping and friction alone, with a near-neutral
+    /// effect; then switching the effect off costs nothing and this is not significant.
+    /// `None` in reports written before the check existed.
+    #[serde(default)]
+    pub effect_itself: Option<Comparison>,
     /// Cosine between the residual (data − backbone) and the effect's signature on training
     /// episodes (signed; the effect's change of the prediction at its starting strength).
     pub signature_cosine: f64,
@@ -251,6 +259,16 @@ fn heldout(
         per_step_mde_cm: per_step.iter().map(|v| v / n).collect(),
         failed,
     })
+}
+
+/// `real` with the candidate's values (the last ones) at [`Candidate::neutral`].
+fn effect_switched_off(real: &[f64], cand: Candidate) -> Vec<f64> {
+    let neutral = cand.neutral();
+    let mut off = real.to_vec();
+    let n = neutral.len().min(off.len());
+    let at = off.len() - n;
+    off[at..].copy_from_slice(&neutral[..n]);
+    off
 }
 
 /// Cosine between the residual `truth − base` and the effect's signature
@@ -440,26 +458,44 @@ pub fn diagnose(
             config.resamples,
             config.seed ^ (k as u64 + 1),
         )?;
+        let off = heldout(
+            &model.family,
+            &effect_switched_off(&model.real, *cand),
+            val,
+            Some(&control_h),
+            false,
+        )?;
+        let itself = paired_shrinkage(
+            &off.per_episode_mde_cm,
+            &h.per_episode_mde_cm,
+            config.resamples,
+            config.seed ^ ((k as u64 + 1) << 32),
+        )?;
         let entry = RankedEffect {
             effect: cand.name().to_string(),
             heldout_mde_before_cm: control_h.mde_cm,
             heldout_mde_after_cm: h.mde_cm,
             shrinkage: cmp.shrinkage,
             ci95: cmp.ci95,
-            significant: cmp.significant(config.rule.min_shrinkage),
+            significant: cmp.significant(config.rule.min_shrinkage)
+                && itself.significant(config.rule.min_shrinkage),
+            effect_itself: Some(itself),
             signature_cosine: signature_cosine(base, &config.base, *cand, &frame, sig_scenes),
             fitted: fitted_names(&model.family, &model.real),
             train_loss_m2: model.train_loss,
             refit_wall_s: model.wall_s,
         };
         progress(&format!(
-            "{:<24} held-out MDE {:.3} -> {:.3} cm, shrinkage {:+.3} [{:+.3}, {:+.3}], signature cos {:+.2} ({:.1} s)",
+            "{:<24} held-out MDE {:.3} -> {:.3} cm, shrinkage {:+.3} [{:+.3}, {:+.3}], vs effect off {:+.3} [{:+.3}, {:+.3}], signature cos {:+.2} ({:.1} s)",
             entry.effect,
             entry.heldout_mde_before_cm,
             entry.heldout_mde_after_cm,
             entry.shrinkage,
             entry.ci95[0],
             entry.ci95[1],
+            itself.shrinkage,
+            itself.ci95[0],
+            itself.ci95[1],
             entry.signature_cosine,
             entry.refit_wall_s
         ));
@@ -479,8 +515,15 @@ pub fn diagnose(
             .total_cmp(&entries[*a].0.shrinkage)
             .then(a.cmp(b))
     });
+    // A candidate whose effect does not carry its gain cannot be the verdict (nor can the
+    // probe make the gap `unknown` that way).
+    let carries = |e: &RankedEffect| {
+        e.effect_itself
+            .is_none_or(|c| c.significant(config.rule.min_shrinkage))
+    };
     let library: Vec<(String, Comparison)> = entries
         .iter()
+        .filter(|(e, _)| carries(e))
         .map(|(e, _)| {
             (
                 e.effect.clone(),
@@ -493,7 +536,7 @@ pub fn diagnose(
         .collect();
     let best_sig = order.iter().copied().find(|i| entries[*i].0.significant);
     let probe_vs_best = match (&probe, best_sig) {
-        (Some((_, ph, _)), Some(b)) => Some(paired_shrinkage(
+        (Some((pe, ph, _)), Some(b)) if carries(pe) => Some(paired_shrinkage(
             &entries[b].1.per_episode_mde_cm,
             &ph.per_episode_mde_cm,
             config.resamples,
@@ -501,10 +544,13 @@ pub fn diagnose(
         )?),
         _ => None,
     };
-    let probe_vs_control = probe.as_ref().map(|(e, _, _)| Comparison {
-        shrinkage: e.shrinkage,
-        ci95: e.ci95,
-    });
+    let probe_vs_control = probe
+        .as_ref()
+        .filter(|(e, _, _)| carries(e))
+        .map(|(e, _, _)| Comparison {
+            shrinkage: e.shrinkage,
+            ci95: e.ci95,
+        });
     let verdict = decide(&library, probe_vs_control, probe_vs_best, &config.rule);
     // How far: the verdict's effect, or the top-ranked one for reference.
     let shown = match &verdict {
@@ -620,5 +666,20 @@ impl Diagnosis {
             })
             .collect::<Result<Vec<_>, _>>()?;
         Ok((params, effects))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn switching_off_touches_only_the_candidates_values() {
+        // [stiffness, damping, friction, base drag, candidate's two nonlinear-elasticity values]
+        let real = [100.0, 2.0, 0.5, 0.3, 30.0, 0.4];
+        let off = effect_switched_off(&real, Candidate::NonlinearElasticity);
+        assert_eq!(off, vec![100.0, 2.0, 0.5, 0.3, 0.0, 0.0]);
+        let off = effect_switched_off(&real[..4], Candidate::Drag);
+        assert_eq!(off, vec![100.0, 2.0, 0.5, 0.0]);
     }
 }

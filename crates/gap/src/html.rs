@@ -333,6 +333,7 @@ pub fn render_html(d: &Diagnosis, title: &str) -> String {
             "MDE after",
             "shrinkage",
             "95% CI",
+            "vs effect off",
             "significant",
             "signature cos",
         ],
@@ -343,6 +344,9 @@ pub fn render_html(d: &Diagnosis, title: &str) -> String {
                 format!("{:.3}", r.heldout_mde_after_cm),
                 format!("{:+.3}", r.shrinkage),
                 format!("[{:+.3}, {:+.3}]", r.ci95[0], r.ci95[1]),
+                r.effect_itself.map_or("–".into(), |c| {
+                    format!("{:+.3} [{:+.3}, {:+.3}]", c.shrinkage, c.ci95[0], c.ci95[1])
+                }),
                 if r.significant { "yes" } else { "no" }.to_string(),
                 format!("{:+.2}", r.signature_cosine),
             ]

@@ -11,7 +11,9 @@
 //! - [`diagnose`] refits the backbone alone (the control) and the backbone with each candidate on
 //!   the training scenes with the same small CMA-ES budget, scores all on held-out scenes,
 //!   bootstraps the shrinkage over episodes ([`paired_shrinkage`]) and applies the verdict
-//!   rule ([`decide`]): an effect, `none` or `unknown`.
+//!   rule ([`decide`]): an effect, `none` or `unknown`. A candidate counts only if switching
+//!   its effect off in its own refit also loses significantly (the effect, not the refit of
+//!   the shared parameters, carries the gain).
 //! - A model may already hold some library effects ([`BaseEffect`], e.g. the verdict of an
 //!   earlier diagnosis): they are refitted with the backbone in the control and in every
 //!   candidate refit, so the diagnosis ranks the remaining candidates against that model.

@@ -41,6 +41,19 @@ fn report_json_has_the_documented_schema() {
         let ci = r["ci95"].as_array().unwrap();
         assert_eq!(ci.len(), 2);
         assert!(ci[0].as_f64().unwrap() <= ci[1].as_f64().unwrap());
+        // The same refit with its effect switched off: a significant candidate needs both.
+        let own = &r["effect_itself"];
+        assert!(own["shrinkage"].as_f64().unwrap().is_finite());
+        let own_ci: Vec<f64> = own["ci95"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|c| c.as_f64().unwrap())
+            .collect();
+        assert!(own_ci[0] <= own_ci[1]);
+        if r["significant"].as_bool().unwrap() {
+            assert!(ci[0].as_f64().unwrap() > 0.0 && own_ci[0] > 0.0);
+        }
     }
     // Sorted by shrinkage, best first.
     assert!(ranking[0]["shrinkage"].as_f64() >= ranking[1]["shrinkage"].as_f64());
