@@ -34,6 +34,8 @@ pub enum StartArg {
     Recorded,
     /// Half from a guided backbone rollout near the truth, half from the model's own.
     Guided,
+    /// Half from the guided backbone rollout, half from the recorded frames.
+    GuidedRecorded,
 }
 
 /// `--loss`.
@@ -136,8 +138,9 @@ pub struct TrainArgs {
     pub position_residual: bool,
     /// Where training segments start: `guided` (half from a backbone rollout pulled toward
     /// the recorded frames, half as `rollout`), `rollout` (the model's own states along the
-    /// evaluation window, refreshed with the hybrid model every --refresh-every steps) or
-    /// `recorded` (tracked frames, as the reference code). See docs/residual.md.
+    /// evaluation window, refreshed with the hybrid model every --refresh-every steps),
+    /// `recorded` (tracked frames, as the reference code) or `guided-recorded` (half
+    /// guided, half recorded). See docs/residual.md.
     #[arg(long, value_enum, default_value_t = StartArg::Guided)]
     pub start_from: StartArg,
     /// Re-run the hybrid model over the training episodes every this many steps (0: never).
@@ -333,6 +336,7 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
             StartArg::Rollout => StartFrom::Rollout,
             StartArg::Recorded => StartFrom::Recorded,
             StartArg::Guided => StartFrom::Guided,
+            StartArg::GuidedRecorded => StartFrom::GuidedRecorded,
         },
         refresh_every: args.refresh_every,
         seed: args.seed,

@@ -83,6 +83,10 @@ pub enum StartFrom {
     /// like the residual, i.e. the states a good residual model visits), half from the
     /// model's own rollout (refreshed every `refresh_every` steps).
     Guided,
+    /// Half the segments from the guided backbone rollout (as [`StartFrom::Guided`]), half
+    /// from recorded frames (as [`StartFrom::Recorded`]). Measured on the full datasets, each
+    /// of those two wins on some objects and loses on others (docs/residual.md, Status).
+    GuidedRecorded,
 }
 
 impl Default for TrainConfig {
@@ -499,10 +503,14 @@ impl Trainer {
 
     /// One optimiser step on a batch drawn from `set`.
     pub fn train_step(&mut self, set: &TrainSet) -> Result<StepStats> {
-        if self.cfg.start_from == StartFrom::Guided && self.guided.is_none() {
+        let guided = matches!(
+            self.cfg.start_from,
+            StartFrom::Guided | StartFrom::GuidedRecorded
+        );
+        if guided && self.guided.is_none() {
             self.guided = Some(set.guided_trajectories(self.net.config().residual_scale)?);
         }
-        if self.cfg.start_from != StartFrom::Recorded {
+        if matches!(self.cfg.start_from, StartFrom::Rollout | StartFrom::Guided) {
             let every = self.cfg.refresh_every;
             if every > 0 && self.step > 0 && self.step.is_multiple_of(every) {
                 self.starts = Some(set.trajectories(Some(&self.net))?);
@@ -517,7 +525,8 @@ impl Trainer {
                     StartFrom::Rollout => self.starts.as_deref(),
                     StartFrom::Guided if b % 2 == 0 => self.guided.as_deref(),
                     StartFrom::Guided => self.starts.as_deref(),
-                    StartFrom::Recorded => None,
+                    StartFrom::GuidedRecorded if b % 2 == 0 => self.guided.as_deref(),
+                    StartFrom::GuidedRecorded | StartFrom::Recorded => None,
                 };
                 set.sample_from(&mut rng, self.cfg.rollout_steps, self.cfg.augment, starts)
             })
