@@ -84,8 +84,10 @@ pub enum StartFrom {
     /// model's own rollout (refreshed every `refresh_every` steps).
     Guided,
     /// Half the segments from the guided backbone rollout (as [`StartFrom::Guided`]), half
-    /// from recorded frames (as [`StartFrom::Recorded`]). Measured on the full datasets, each
-    /// of those two wins on some objects and loses on others (docs/residual.md, Status).
+    /// from recorded frames (as [`StartFrom::Recorded`]), by position in the batch as in
+    /// [`StartFrom::Guided`] (with a batch of one, every segment is guided). Measured on the
+    /// full datasets, each of those two wins on some objects and loses on others
+    /// (docs/residual.md, Status).
     GuidedRecorded,
 }
 
