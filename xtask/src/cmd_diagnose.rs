@@ -66,6 +66,10 @@ pub struct DiagnoseArgs {
     /// Skip the generic external-field probe (the verdict can then not be `unknown`).
     #[arg(long)]
     pub no_probe: bool,
+    /// Name the significant candidate with the largest shrinkage even when others are tied
+    /// with it on held-out error (by default the signature breaks such ties).
+    #[arg(long)]
+    pub no_tie_break: bool,
     /// Ignore `<run>/residual.safetensors` (by default a trained network there is scored on
     /// the held-out episodes: how much of the gap is learnable, and `unknown` when it beats
     /// every library model).
@@ -103,6 +107,10 @@ fn config_from(args: &DiagnoseArgs, run_effects: &[BaseEffect]) -> anyhow::Resul
             None => run_effects.to_vec(),
         },
         probe: !args.no_probe,
+        rule: gap::VerdictRule {
+            signature_tie_break: !args.no_tie_break,
+            ..gap::VerdictRule::default()
+        },
         ..DiagnoseConfig::default()
     })
 }

@@ -260,6 +260,9 @@ pub struct BenchCase {
     pub diagnose_wall_s: f64,
     /// The trained network's comparison (`--network-minutes`), when this case got one.
     pub network: Option<gap::Learnable>,
+    /// Significant candidates tied on held-out error, when there were any: `by_shrinkage` is
+    /// what the verdict would have been without the signature tie-break.
+    pub tie_break: Option<gap::TieBreak>,
 }
 
 /// Bench summary.
@@ -758,6 +761,7 @@ pub fn run_bench(args: &DiagnoseBenchArgs) -> anyhow::Result<BenchSummary> {
                 recovered: after.filter(|_| gap > 0.0).map(|a| (before - a) / gap),
                 diagnose_wall_s: wall,
                 network: d.learnable.clone(),
+                tie_break: d.tie_break.clone(),
             };
             let raise = case
                 .ladder
@@ -790,6 +794,14 @@ pub fn run_bench(args: &DiagnoseBenchArgs) -> anyhow::Result<BenchSummary> {
                 wall,
                 t.elapsed().as_secs_f64() - wall - network_wall
             );
+            if let Some(tb) = &case.tie_break {
+                println!(
+                    "       tied on held-out error: {} (largest shrinkage {}, signature chose {})",
+                    tb.tied.join(", "),
+                    tb.by_shrinkage,
+                    tb.chosen
+                );
+            }
             out.push(case);
             save(&objects, &out)?;
         }

@@ -13,7 +13,7 @@ use crate::GapError;
 use crate::base::{BaseEffect, check_distinct};
 use crate::candidates::{Candidate, CandidateFamily, MaterialFrame};
 use crate::locate::{Where, locate};
-use crate::stats::{Comparison, Verdict, VerdictRule, decide, paired_shrinkage};
+use crate::stats::{Comparison, Rival, Verdict, VerdictRule, break_tie, decide, paired_shrinkage};
 
 /// Settings of a diagnosis.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -118,6 +118,23 @@ pub struct RankedEffect {
     pub train_loss_m2: f64,
     /// Wall time of the refit, s.
     pub refit_wall_s: f64,
+    /// Held-out MDE per episode with the effect refitted, cm (the control's:
+    /// [`HowFar::before`]). Empty in reports written before 2026-11-25.
+    #[serde(default)]
+    pub heldout_mde_per_episode_cm: Vec<f64>,
+}
+
+/// Significant candidates that held-out error could not separate, and which one the
+/// signature chose ([`crate::break_tie`]).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TieBreak {
+    /// The significant candidate with the largest shrinkage.
+    pub by_shrinkage: String,
+    /// The candidates tied with it, it first.
+    pub tied: Vec<String>,
+    /// The tied candidate with the largest signature cosine: the verdict's effect, unless the
+    /// probe made the verdict `unknown`.
+    pub chosen: String,
 }
 
 /// The control refit: the backbone (and the base effects, if any) refitted without a candidate.
@@ -162,8 +179,11 @@ pub struct Diagnosis {
     pub ranking: Vec<RankedEffect>,
     /// The generic external-field probe against the control.
     pub probe: Option<RankedEffect>,
-    /// The probe against the best significant library candidate.
+    /// The probe against the best significant library candidate (after the tie-break).
     pub probe_vs_best: Option<Comparison>,
+    /// Present when significant candidates were tied on held-out error.
+    #[serde(default)]
+    pub tie_break: Option<TieBreak>,
     /// Where the fitted backbone errs on held-out episodes.
     pub r#where: Where,
     /// Before / after the verdict's effect.
@@ -484,6 +504,7 @@ pub fn diagnose(
             fitted: fitted_names(&model.family, &model.real),
             train_loss_m2: model.train_loss,
             refit_wall_s: model.wall_s,
+            heldout_mde_per_episode_cm: h.per_episode_mde_cm.clone(),
         };
         progress(&format!(
             "{:<24} held-out MDE {:.3} -> {:.3} cm, shrinkage {:+.3} [{:+.3}, {:+.3}], vs effect off {:+.3} [{:+.3}, {:+.3}], signature cos {:+.2} ({:.1} s)",
@@ -534,7 +555,41 @@ pub fn diagnose(
             )
         })
         .collect();
-    let best_sig = order.iter().copied().find(|i| entries[*i].0.significant);
+    let by_shrinkage = order.iter().copied().find(|i| entries[*i].0.significant);
+    // Candidates the held-out error cannot separate from the best go to the signature.
+    let mut tie_break = None;
+    let best_sig = match by_shrinkage {
+        Some(b) if config.rule.signature_tie_break => {
+            let mut rivals = Vec::new();
+            for (j, (e, h)) in entries.iter().enumerate() {
+                if j == b || !e.significant {
+                    continue;
+                }
+                rivals.push(Rival {
+                    effect: e.effect.clone(),
+                    signature_cosine: e.signature_cosine,
+                    best_vs_rival: paired_shrinkage(
+                        &h.per_episode_mde_cm,
+                        &entries[b].1.per_episode_mde_cm,
+                        config.resamples,
+                        config.seed ^ (0x71E0 + j as u64),
+                    )?,
+                });
+            }
+            let best = &entries[b].0;
+            let (chosen, tied) = break_tie((&best.effect, best.signature_cosine), &rivals);
+            let c = entries.iter().position(|(e, _)| e.effect == chosen);
+            if tied.len() > 1 {
+                tie_break = Some(TieBreak {
+                    by_shrinkage: best.effect.clone(),
+                    tied,
+                    chosen,
+                });
+            }
+            c
+        }
+        other => other,
+    };
     let probe_vs_best = match (&probe, best_sig) {
         (Some((pe, ph, _)), Some(b)) if carries(pe) => Some(paired_shrinkage(
             &entries[b].1.per_episode_mde_cm,
@@ -551,7 +606,14 @@ pub fn diagnose(
             shrinkage: e.shrinkage,
             ci95: e.ci95,
         });
-    let verdict = decide(&library, probe_vs_control, probe_vs_best, &config.rule);
+    let verdict = match (
+        decide(&library, probe_vs_control, probe_vs_best, &config.rule),
+        best_sig,
+    ) {
+        // `decide` names the largest shrinkage; the tie-break may have chosen another.
+        (Verdict::Effect(_), Some(c)) => Verdict::Effect(entries[c].0.effect.clone()),
+        (v, _) => v,
+    };
     // How far: the verdict's effect, or the top-ranked one for reference.
     let shown = match &verdict {
         Verdict::Effect(name) => entries.iter().position(|(e, _)| &e.effect == name),
@@ -584,6 +646,7 @@ pub fn diagnose(
         ranking: order.iter().map(|i| entries[*i].0.clone()).collect(),
         probe: probe.map(|(e, _, _)| e),
         probe_vs_best,
+        tie_break,
         r#where: place,
         how_far,
         backbone_as_given,

@@ -262,6 +262,16 @@ pub fn render_html(d: &Diagnosis, title: &str) -> String {
         },
         d.control.heldout_mde_cm
     );
+    if let Some(t) = &d.tie_break {
+        let _ = write!(
+            body,
+            "<p>Tied on held-out error (the best, {}, does not beat the others significantly): {}. \
+             Chosen by the signature cosine: <b>{}</b>.</p>",
+            esc(&t.by_shrinkage),
+            esc(&t.tied.join(", ")),
+            esc(&t.chosen)
+        );
+    }
     if let Some(h) = &d.how_far {
         let _ = write!(body, "<h2>How far: adding {}</h2>", esc(&h.effect));
         body += &table(

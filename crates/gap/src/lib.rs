@@ -13,7 +13,8 @@
 //!   bootstraps the shrinkage over episodes ([`paired_shrinkage`]) and applies the verdict
 //!   rule ([`decide`]): an effect, `none` or `unknown`. A candidate counts only if switching
 //!   its effect off in its own refit also loses significantly (the effect, not the refit of
-//!   the shared parameters, carries the gain).
+//!   the shared parameters, carries the gain); significant candidates that held-out error
+//!   cannot separate go to the one whose signature matches the residual best ([`break_tie`]).
 //! - A model may already hold some library effects ([`BaseEffect`], e.g. the verdict of an
 //!   earlier diagnosis): they are refitted with the backbone in the control and in every
 //!   candidate refit, so the diagnosis ranks the remaining candidates against that model.
@@ -46,13 +47,13 @@ mod stats;
 pub use base::{BaseEffect, backbone_options};
 pub use candidates::{Candidate, CandidateFamily, MaterialFrame, principal_axis};
 pub use diagnose::{
-    ControlFit, DiagnoseConfig, Diagnosis, Heldout, HowFar, RankedEffect, diagnose, evaluate,
-    material_frame,
+    ControlFit, DiagnoseConfig, Diagnosis, Heldout, HowFar, RankedEffect, TieBreak, diagnose,
+    evaluate, material_frame,
 };
 pub use html::render_html;
 pub use learnable::{Learnable, add_learnable};
 pub use locate::{Bin, CONTACT_HEIGHT_M, Trend, Where, locate, spearman};
-pub use stats::{Comparison, Verdict, VerdictRule, decide, paired_shrinkage};
+pub use stats::{Comparison, Rival, Verdict, VerdictRule, break_tie, decide, paired_shrinkage};
 
 /// Why a diagnosis failed.
 #[derive(Debug, thiserror::Error)]

@@ -85,6 +85,10 @@ pub struct VerdictRule {
     /// Least shrinkage the generic probe must add on top of the best library effect to call the
     /// gap `unknown`.
     pub probe_margin: f64,
+    /// Break ties between significant candidates by their signature ([`break_tie`]); without
+    /// it the largest shrinkage wins. Rules saved before the option read back as `false`.
+    #[serde(default)]
+    pub signature_tie_break: bool,
 }
 
 impl Default for VerdictRule {
@@ -92,8 +96,53 @@ impl Default for VerdictRule {
         VerdictRule {
             min_shrinkage: 0.05,
             probe_margin: 0.10,
+            signature_tie_break: true,
         }
     }
+}
+
+/// A significant candidate other than the best, for [`break_tie`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct Rival {
+    /// Effect name.
+    pub effect: String,
+    /// Cosine between the residual and the effect's signature.
+    pub signature_cosine: f64,
+    /// The best candidate against this one: the rival's per-episode held-out MDE as
+    /// `before`, the best's as `after` ([`paired_shrinkage`]).
+    pub best_vs_rival: Comparison,
+}
+
+/// Which significant candidate the verdict names when held-out error cannot separate them.
+///
+/// `best` is the significant candidate with the largest shrinkage and its signature cosine. A
+/// rival the best does not beat significantly (`best_vs_rival` interval reaching 0) is *tied*
+/// with it: on these held-out episodes either explains the data. Among the tied, the one whose
+/// signature (the change its effect makes to the prediction) points most along the observed
+/// residual is chosen. Returns the chosen name and the tied names (the best first); a single
+/// name when nothing is tied.
+///
+/// ```
+/// use gap::{Comparison, Rival, break_tie};
+/// let close = Comparison { shrinkage: 0.05, ci95: [-0.04, 0.12] };
+/// let rival = Rival { effect: "grasp-slip".into(), signature_cosine: 0.75, best_vs_rival: close };
+/// let (chosen, tied) = break_tie(("plasticity", 0.27), &[rival]);
+/// assert_eq!(chosen, "grasp-slip");
+/// assert_eq!(tied, ["plasticity", "grasp-slip"]);
+/// ```
+pub fn break_tie(best: (&str, f64), rivals: &[Rival]) -> (String, Vec<String>) {
+    let mut chosen = (best.0, best.1);
+    let mut tied = vec![best.0.to_string()];
+    for r in rivals {
+        if r.best_vs_rival.ci95[0] > 0.0 {
+            continue;
+        }
+        tied.push(r.effect.clone());
+        if r.signature_cosine > chosen.1 {
+            chosen = (&r.effect, r.signature_cosine);
+        }
+    }
+    (chosen.0.to_string(), tied)
 }
 
 /// The outcome of a diagnosis.
@@ -186,6 +235,37 @@ mod tests {
         assert!(paired_shrinkage(&[], &[], 10, 0).is_err());
         assert!(paired_shrinkage(&[1.0], &[1.0, 2.0], 10, 0).is_err());
         assert!(paired_shrinkage(&[f64::NAN], &[1.0], 10, 0).is_err());
+    }
+
+    #[test]
+    fn ties_go_to_the_signature_clear_wins_to_the_shrinkage() {
+        let rival = |name: &str, cos: f64, lo: f64| Rival {
+            effect: name.into(),
+            signature_cosine: cos,
+            best_vs_rival: c(0.1, lo, 0.2),
+        };
+        // No rivals: the best.
+        assert_eq!(
+            break_tie(("drag", 0.1), &[]),
+            ("drag".into(), vec!["drag".into()])
+        );
+        // The best beats the high-signature rival clearly: it stays.
+        let (chosen, tied) = break_tie(("drag", 0.1), &[rival("bending", 0.9, 0.01)]);
+        assert_eq!((chosen.as_str(), tied.len()), ("drag", 1));
+        // Two tied rivals: the larger signature wins, a clearly beaten one is left out.
+        let (chosen, tied) = break_tie(
+            ("drag", 0.3),
+            &[
+                rival("bending", 0.5, -0.02),
+                rival("friction", 0.95, 0.03),
+                rival("plasticity", 0.7, 0.0),
+            ],
+        );
+        assert_eq!(chosen, "plasticity");
+        assert_eq!(tied, ["drag", "bending", "plasticity"]);
+        // A tie where the best also has the best signature keeps the best.
+        let (chosen, _) = break_tie(("drag", 0.8), &[rival("bending", 0.5, -0.1)]);
+        assert_eq!(chosen, "drag");
     }
 
     #[test]

@@ -54,6 +54,22 @@ fn report_json_has_the_documented_schema() {
         if r["significant"].as_bool().unwrap() {
             assert!(ci[0].as_f64().unwrap() > 0.0 && own_ci[0] > 0.0);
         }
+        // Per-episode errors, so that a reader can redo the statistics: their sum over the
+        // episodes is the reported mean.
+        let per: Vec<f64> = r["heldout_mde_per_episode_cm"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|x| x.as_f64().unwrap())
+            .collect();
+        assert_eq!(per.len(), val.len());
+        let mean = per.iter().sum::<f64>() / per.len() as f64;
+        assert!((mean - r["heldout_mde_after_cm"].as_f64().unwrap()).abs() < 1e-9);
+    }
+    // A tie-break is recorded only between significant candidates, and names one of them.
+    if let Some(t) = d.tie_break.as_ref() {
+        assert!(t.tied.len() >= 2 && t.tied.contains(&t.chosen));
+        assert_eq!(t.tied[0], t.by_shrinkage);
     }
     // Sorted by shrinkage, best first.
     assert!(ranking[0]["shrinkage"].as_f64() >= ranking[1]["shrinkage"].as_f64());
