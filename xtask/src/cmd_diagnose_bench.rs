@@ -148,7 +148,7 @@ pub struct DiagnoseBenchArgs {
     pub bounds: BoundsArg,
     /// Strength ladder: multiples of the world's default strength tried in order
     /// (comma-separated; `1` keeps the defaults).
-    #[arg(long, default_value = "1,2,4,8")]
+    #[arg(long, default_value = "1,4,16,64")]
     pub scales: String,
     /// Least raise of the base model's training MDE an effect must cause, as a fraction of
     /// its no-effect training MDE.
@@ -979,7 +979,14 @@ mod tests {
                     Effects::only(object, kind),
                     "{object} {kind}"
                 );
-                for s in [2.0, 8.0, 64.0] {
+                // The default ladder and a finer one.
+                let default: Vec<f32> = bench_args(&[])
+                    .scales
+                    .split(',')
+                    .map(|s| s.parse().unwrap())
+                    .collect();
+                assert_eq!(default.first(), Some(&1.0));
+                for s in default.into_iter().skip(1).chain([2.0, 8.0]) {
                     let e = scaled_effect(object, kind, s);
                     assert!(e.validate().is_ok(), "{object} {kind} x{s}");
                     assert_eq!(e.enabled(), vec![kind]);

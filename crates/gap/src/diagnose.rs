@@ -119,7 +119,7 @@ pub struct RankedEffect {
     /// Wall time of the refit, s.
     pub refit_wall_s: f64,
     /// Held-out MDE per episode with the effect refitted, cm (the control's:
-    /// [`HowFar::before`]). Empty in reports written before 2026-11-25.
+    /// [`HowFar::before`]). Empty in reports written before the field existed (2026-11-24).
     #[serde(default)]
     pub heldout_mde_per_episode_cm: Vec<f64>,
 }
