@@ -972,6 +972,14 @@ mod tests {
 
     #[test]
     fn scale_one_is_the_world_default_and_scales_stay_valid() {
+        // The default ladder's rungs above 1, and a finer ladder's.
+        let ladder: Vec<f32> = bench_args(&[])
+            .scales
+            .split(',')
+            .map(|s| s.parse().unwrap())
+            .collect();
+        assert_eq!(ladder.first(), Some(&1.0));
+        let stronger: Vec<f32> = ladder.into_iter().skip(1).chain([2.0, 8.0]).collect();
         for object in ObjectKind::ALL {
             for kind in EffectKind::ALL {
                 assert_eq!(
@@ -979,14 +987,7 @@ mod tests {
                     Effects::only(object, kind),
                     "{object} {kind}"
                 );
-                // The default ladder and a finer one.
-                let default: Vec<f32> = bench_args(&[])
-                    .scales
-                    .split(',')
-                    .map(|s| s.parse().unwrap())
-                    .collect();
-                assert_eq!(default.first(), Some(&1.0));
-                for s in default.into_iter().skip(1).chain([2.0, 8.0]) {
+                for &s in &stronger {
                     let e = scaled_effect(object, kind, s);
                     assert!(e.validate().is_ok(), "{object} {kind} x{s}");
                     assert_eq!(e.enabled(), vec![kind]);

@@ -54,8 +54,8 @@ fn report_json_has_the_documented_schema() {
         if r["significant"].as_bool().unwrap() {
             assert!(ci[0].as_f64().unwrap() > 0.0 && own_ci[0] > 0.0);
         }
-        // Per-episode errors, so that a reader can redo the statistics: their sum over the
-        // episodes is the reported mean.
+        // Per-episode errors, so that a reader can redo the statistics: their mean is the
+        // reported held-out MDE.
         let per: Vec<f64> = r["heldout_mde_per_episode_cm"]
             .as_array()
             .unwrap()
