@@ -13,7 +13,9 @@ use crate::GapError;
 use crate::base::{BaseEffect, check_distinct};
 use crate::candidates::{Candidate, CandidateFamily, MaterialFrame};
 use crate::locate::{Where, locate};
-use crate::stats::{Comparison, Rival, Verdict, VerdictRule, break_tie, decide, paired_shrinkage};
+use crate::stats::{
+    Comparison, Rival, Verdict, VerdictRule, best_candidate, break_tie, decide, paired_shrinkage,
+};
 
 /// Settings of a diagnosis.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -555,7 +557,8 @@ pub fn diagnose(
             )
         })
         .collect();
-    let by_shrinkage = order.iter().copied().find(|i| entries[*i].0.significant);
+    let by_shrinkage = best_candidate(&library, &config.rule)
+        .and_then(|name| entries.iter().position(|(e, _)| e.effect == name));
     // Candidates the held-out error cannot separate from the best go to the signature.
     let mut tie_break = None;
     let best_sig = match by_shrinkage {
@@ -606,14 +609,12 @@ pub fn diagnose(
             shrinkage: e.shrinkage,
             ci95: e.ci95,
         });
-    let verdict = match (
-        decide(&library, probe_vs_control, probe_vs_best, &config.rule),
-        best_sig,
-    ) {
-        // `decide` names the largest shrinkage; the tie-break may have chosen another.
-        (Verdict::Effect(_), Some(c)) => Verdict::Effect(entries[c].0.effect.clone()),
-        (v, _) => v,
-    };
+    let verdict = decide(
+        best_sig.map(|b| entries[b].0.effect.as_str()),
+        probe_vs_control,
+        probe_vs_best,
+        &config.rule,
+    );
     // How far: the verdict's effect, or the top-ranked one for reference.
     let shown = match &verdict {
         Verdict::Effect(name) => entries.iter().position(|(e, _)| &e.effect == name),

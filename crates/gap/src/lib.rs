@@ -30,7 +30,8 @@
 //! let after = [1.2, 1.5, 1.1, 1.4, 1.2, 1.3];
 //! let c = gap::paired_shrinkage(&before, &after, 2000, 0)?;
 //! let lib = vec![("drag".to_string(), c)];
-//! let v = gap::decide(&lib, None, None, &gap::VerdictRule::default());
+//! let rule = gap::VerdictRule::default();
+//! let v = gap::decide(gap::best_candidate(&lib, &rule), None, None, &rule);
 //! assert_eq!(v.label(), "drag");
 //! # Ok::<(), gap::GapError>(())
 //! ```
@@ -53,7 +54,9 @@ pub use diagnose::{
 pub use html::render_html;
 pub use learnable::{Learnable, add_learnable};
 pub use locate::{Bin, CONTACT_HEIGHT_M, Trend, Where, locate, spearman};
-pub use stats::{Comparison, Rival, Verdict, VerdictRule, break_tie, decide, paired_shrinkage};
+pub use stats::{
+    Comparison, Rival, Verdict, VerdictRule, best_candidate, break_tie, decide, paired_shrinkage,
+};
 
 /// Why a diagnosis failed.
 #[derive(Debug, thiserror::Error)]

@@ -167,27 +167,39 @@ impl Verdict {
     }
 }
 
-/// The verdict from each library candidate's comparison with the control, and the generic
-/// probe's comparison with the control and with the best significant library candidate.
+/// Step 1 of the verdict rule: the significant library candidate (against the control, by at
+/// least `min_shrinkage`) with the largest shrinkage, if any.
+pub fn best_candidate<'a>(
+    library: &'a [(String, Comparison)],
+    rule: &VerdictRule,
+) -> Option<&'a str> {
+    library
+        .iter()
+        .filter(|(_, c)| c.significant(rule.min_shrinkage))
+        .max_by(|a, b| a.1.shrinkage.total_cmp(&b.1.shrinkage))
+        .map(|(name, _)| name.as_str())
+}
+
+/// The verdict from the chosen library candidate and the generic probe's comparisons with the
+/// control and with that candidate.
 ///
-/// 1. The best library candidate is the significant one with the largest shrinkage.
-/// 2. If the probe beats it significantly by at least `probe_margin` → `unknown`.
-/// 3. Else the best candidate, if any.
-/// 4. Else `unknown` if the probe alone is significant, otherwise `none`.
+/// `chosen` is [`best_candidate`], or the candidate [`break_tie`] preferred among those the
+/// held-out error cannot separate from it (`probe_vs_best` then compares with that one).
+///
+/// 1. If there is a chosen candidate and the probe beats it significantly by at least
+///    `probe_margin` → `unknown`; else the chosen candidate.
+/// 2. With no significant candidate: `unknown` if the probe alone is significant, otherwise
+///    `none`.
 pub fn decide(
-    library: &[(String, Comparison)],
+    chosen: Option<&str>,
     probe_vs_control: Option<Comparison>,
     probe_vs_best: Option<Comparison>,
     rule: &VerdictRule,
 ) -> Verdict {
-    let best = library
-        .iter()
-        .filter(|(_, c)| c.significant(rule.min_shrinkage))
-        .max_by(|a, b| a.1.shrinkage.total_cmp(&b.1.shrinkage));
-    match best {
-        Some((name, _)) => match probe_vs_best {
+    match chosen {
+        Some(name) => match probe_vs_best {
             Some(p) if p.significant(rule.probe_margin) => Verdict::Unknown,
-            _ => Verdict::Effect(name.clone()),
+            _ => Verdict::Effect(name.to_string()),
         },
         None => match probe_vs_control {
             Some(p) if p.significant(rule.min_shrinkage.max(rule.probe_margin)) => Verdict::Unknown,
@@ -277,27 +289,35 @@ mod tests {
             ("friction".to_string(), c(0.10, 0.02, 0.2)),
         ];
         // Bending has the largest shrinkage but its interval includes 0.
+        let best = best_candidate(&lib, &rule);
+        assert_eq!(best, Some("drag"));
         assert_eq!(
-            decide(&lib, None, None, &rule),
+            decide(best, None, None, &rule),
             Verdict::Effect("drag".into())
         );
         // The probe adds a significant 30% on top of drag.
         let big = c(0.3, 0.2, 0.4);
-        assert_eq!(decide(&lib, Some(big), Some(big), &rule), Verdict::Unknown);
+        assert_eq!(decide(best, Some(big), Some(big), &rule), Verdict::Unknown);
         // The probe adds too little.
         let small = c(0.04, 0.01, 0.08);
         assert_eq!(
-            decide(&lib, Some(big), Some(small), &rule),
+            decide(best, Some(big), Some(small), &rule),
             Verdict::Effect("drag".into())
+        );
+        // A tie-break's choice is what the verdict names.
+        assert_eq!(
+            decide(Some("friction"), Some(big), Some(small), &rule),
+            Verdict::Effect("friction".into())
         );
         // Nothing significant anywhere: noise.
         let weak = vec![("drag".to_string(), c(0.02, -0.01, 0.05))];
+        assert_eq!(best_candidate(&weak, &rule), None);
         assert_eq!(
-            decide(&weak, Some(c(0.01, -0.02, 0.03)), None, &rule),
+            decide(None, Some(c(0.01, -0.02, 0.03)), None, &rule),
             Verdict::None
         );
         // Only the probe helps.
-        assert_eq!(decide(&weak, Some(big), None, &rule), Verdict::Unknown);
+        assert_eq!(decide(None, Some(big), None, &rule), Verdict::Unknown);
         assert_eq!(Verdict::Unknown.label(), "unknown");
     }
 }
