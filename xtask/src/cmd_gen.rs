@@ -40,12 +40,17 @@ pub struct GenArgs {
     /// Seed of every random choice.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// Episodes cut from one continuous recording [default: 10]; fewer means more recordings,
+    /// each starting from a freshly placed object.
+    #[arg(long)]
+    pub episodes_per_recording: Option<usize>,
     /// Tracked particles [default: per object, or 150 with --preset fixture].
     #[arg(long)]
     pub tracked: Option<usize>,
-    /// Gripper motions: `everyday` (each object's usual manipulation) or `probing` (fast
+    /// Gripper motions: `everyday` (each object's usual manipulation), `probing` (fast
     /// sweeps, holds, slides over the table, jerks: motions that excite the diagnosis's
-    /// effects; the pushed teddy is poked either way).
+    /// effects) or `planning` (MPPI-like moves from the rest pose: drags, lifts, lowers); the
+    /// pushed teddy is poked in every style.
     #[arg(long, default_value_t = MotionStyle::Everyday)]
     pub motion: MotionStyle,
     /// Dataset size preset.
@@ -78,6 +83,9 @@ pub fn run(args: &GenArgs) -> anyhow::Result<()> {
         cfg.motion = args.motion;
         if let Some(e) = args.episodes {
             cfg.train_episodes = e;
+        }
+        if let Some(e) = args.episodes_per_recording {
+            cfg.episodes_per_recording = e;
         }
         if let Some(v) = args.val {
             cfg.val_episodes = v;

@@ -26,6 +26,12 @@ pub enum MotionStyle {
     /// and slid slowly over it (friction, stick-slip), and quick vertical jerks (stretch,
     /// nonlinear elasticity, plasticity, mass distribution).
     Probing,
+    /// Motions in the style of a sampling-based planner's executed paths (`crates/plan`'s MPPI):
+    /// from the object's rest pose (the rope laid straight in half the recordings), moves of
+    /// 0.3–1.2 s at 5–35 cm/s in random directions, mostly dragging over the table, sometimes
+    /// lifting into the air or lowering back while moving, with short holds. Training data for
+    /// models that plan.
+    Planning,
 }
 
 impl MotionStyle {
@@ -39,6 +45,7 @@ impl MotionStyle {
         match self {
             MotionStyle::Everyday => "everyday",
             MotionStyle::Probing => "probing",
+            MotionStyle::Planning => "planning",
         }
     }
 }
@@ -52,14 +59,18 @@ impl std::fmt::Display for MotionStyle {
 impl std::str::FromStr for MotionStyle {
     type Err = Error;
     fn from_str(s: &str) -> Result<Self, Error> {
-        [MotionStyle::Everyday, MotionStyle::Probing]
-            .into_iter()
-            .find(|m| m.name() == s)
-            .ok_or_else(|| {
-                Error::Config(format!(
-                    "unknown motion style `{s}` (expected everyday or probing)"
-                ))
-            })
+        [
+            MotionStyle::Everyday,
+            MotionStyle::Probing,
+            MotionStyle::Planning,
+        ]
+        .into_iter()
+        .find(|m| m.name() == s)
+        .ok_or_else(|| {
+            Error::Config(format!(
+                "unknown motion style `{s}` (expected everyday, probing or planning)"
+            ))
+        })
     }
 }
 
@@ -430,6 +441,55 @@ pub(crate) fn probing_motion(
             m.push(rng.random_range(0.6..1.0), p);
         }
     }
+    m
+}
+
+/// A planner-style trajectory for a grasped object (see [`MotionStyle::Planning`]): `start` is
+/// the gripper after settling, `hang` how far the object reaches below it (m). The gripper stays
+/// within a disk around its start (a planning task's workspace).
+pub(crate) fn planning_motion(
+    kind: ObjectKind,
+    start: Vec3,
+    hang: f32,
+    duration: f32,
+    rng: &mut impl Rng,
+) -> Motion {
+    let f = probe_frame(kind, start, hang);
+    // The rope tasks move the gripper up to 45 cm (rerouting farther, in many moves).
+    let reach = if kind == ObjectKind::Rope { 0.6 } else { 0.3 };
+    let mut m = Motion::new(start, f.contact_z.min(start.z) - 0.005);
+    m.push(rng.random_range(0.1..0.4), start);
+    while m.end_time() < duration {
+        let p = m.last();
+        if rng.random_bool(0.1) {
+            m.push(rng.random_range(0.2..0.6), p);
+            continue;
+        }
+        let in_air = p.z >= f.air_z.0 - 1e-3;
+        let dt = rng.random_range(0.3..1.2f32);
+        let speed = rng.random_range(0.05..0.35f32);
+        let r = rng.random_range(0.0..1.0f32);
+        let z = if in_air && r < 0.5 {
+            // Lower onto the table while moving.
+            f.contact_z + rng.random_range(0.0..0.02)
+        } else if in_air {
+            (p.z + rng.random_range(-0.1..0.1)).clamp(f.air_z.0, f.air_z.1)
+        } else if r < 0.15 {
+            // Lift while moving.
+            rng.random_range(f.air_z.0..f.air_z.1)
+        } else {
+            // Drag over the table.
+            f.contact_z + rng.random_range(0.0..0.015)
+        };
+        let dz = (z - p.z).abs();
+        let along = (speed * dt).powi(2) - dz * dz;
+        let az = rng.random_range(0.0..std::f32::consts::TAU);
+        let q = p + Vec3::new(az.cos(), az.sin(), 0.0) * along.max(0.0).sqrt();
+        let q = clamp_disk(Vec3::new(q.x, q.y, z), start, reach);
+        // A long vertical move takes at least what 15 cm/s allows.
+        m.push(dt.max(dz / speed.max(0.15)), q);
+    }
+    m.set_velocities(rng, 1);
     m
 }
 

@@ -2,10 +2,13 @@
 //! particles at 10 fps, observe them.
 
 use glam::Vec3;
+use rand::Rng;
 
 use crate::build::{Blueprint, place};
 use crate::effects::Effects;
-use crate::motion::{Motion, MotionStyle, PokePlanner, grasp_motion, probing_motion};
+use crate::motion::{
+    Motion, MotionStyle, PokePlanner, grasp_motion, planning_motion, probing_motion,
+};
 use crate::observation::Observation;
 use crate::rng::{stream, tag};
 use crate::sim::{GraspMode, Sim};
@@ -61,7 +64,9 @@ pub(crate) fn record(scene: &Scene<'_>, index: u64, frames: usize) -> Result<Rec
     let bp = scene.bp;
     let mut place_rng = stream(scene.seed, &[tag::PLACEMENT, index]);
     let mut motion_rng = stream(scene.seed, &[tag::MOTION, index]);
-    let (x, g0) = place(scene.kind, bp, &mut place_rng);
+    // Planning tasks start from the straight rope; half the planning-style recordings do too.
+    let straight = scene.motion == MotionStyle::Planning && place_rng.random_bool(0.5);
+    let (x, g0) = place(scene.kind, bp, straight, &mut place_rng);
     let push = scene.kind.is_push().then_some(PUSH_RADIUS);
     let mut sim = Sim::new(bp, scene.effects, x, push);
     let planner = push.map(|radius| PokePlanner {
@@ -107,6 +112,11 @@ pub(crate) fn record(scene: &Scene<'_>, index: u64, frames: usize) -> Result<Rec
                 let lowest = sim.x.iter().map(|p| p.z).fold(f32::INFINITY, f32::min);
                 let hang = (g0.z - lowest).max(0.0);
                 probing_motion(scene.kind, g0, hang, centre, duration, &mut motion_rng)
+            }
+            MotionStyle::Planning => {
+                let lowest = sim.x.iter().map(|p| p.z).fold(f32::INFINITY, f32::min);
+                let hang = (g0.z - lowest).max(0.0);
+                planning_motion(scene.kind, g0, hang, duration, &mut motion_rng)
             }
         };
     }

@@ -437,8 +437,14 @@ pub(crate) fn centroid(points: &[Vec3]) -> Vec3 {
 }
 
 /// Initial positions and gripper position of one recording: a random pose on the table (rope:
-/// also a random smooth planar curve) or in the air for held objects.
-pub(crate) fn place(kind: ObjectKind, bp: &Blueprint, rng: &mut impl Rng) -> (Vec<Vec3>, Vec3) {
+/// also a random smooth planar curve, or a straight line with `straight`) or in the air for held
+/// objects.
+pub(crate) fn place(
+    kind: ObjectKind,
+    bp: &Blueprint,
+    straight: bool,
+    rng: &mut impl Rng,
+) -> (Vec<Vec3>, Vec3) {
     let offset = Vec3::new(
         rng.random_range(-0.05..0.05),
         rng.random_range(-0.05..0.05),
@@ -446,7 +452,7 @@ pub(crate) fn place(kind: ObjectKind, bp: &Blueprint, rng: &mut impl Rng) -> (Ve
     );
     let yaw = Quat::from_rotation_z(rng.random_range(0.0..std::f32::consts::TAU));
     match kind {
-        ObjectKind::Rope => place_rope(bp, offset, rng),
+        ObjectKind::Rope => place_rope(bp, offset, straight, rng),
         ObjectKind::Paper | ObjectKind::Flag | ObjectKind::Duster => {
             let home = match kind {
                 ObjectKind::Paper => 0.45,
@@ -472,9 +478,15 @@ pub(crate) fn place(kind: ObjectKind, bp: &Blueprint, rng: &mut impl Rng) -> (Ve
     }
 }
 
-/// Lays the straight rope along a random smooth planar curve (arc length preserved), resting on
-/// the table.
-fn place_rope(bp: &Blueprint, offset: Vec3, rng: &mut impl Rng) -> (Vec<Vec3>, Vec3) {
+/// Lays the straight rope along a random smooth planar curve (arc length preserved; a straight
+/// line with `straight`), resting on the table.
+fn place_rope(
+    bp: &Blueprint,
+    offset: Vec3,
+    straight: bool,
+    rng: &mut impl Rng,
+) -> (Vec<Vec3>, Vec3) {
+    let bend = if straight { 0.0 } else { 1.0 };
     let x0 = bp.rest.iter().map(|p| p.x).fold(f32::INFINITY, f32::min);
     let length = bp
         .rest
@@ -486,7 +498,7 @@ fn place_rope(bp: &Blueprint, offset: Vec3, rng: &mut impl Rng) -> (Vec<Vec3>, V
     let waves: Vec<(f32, f32, f32)> = (0..2)
         .map(|_| {
             (
-                rng.random_range(0.0..0.7),
+                bend * rng.random_range(0.0..0.7),
                 rng.random_range(0.5..1.5),
                 rng.random_range(0.0..std::f32::consts::TAU),
             )
