@@ -1,0 +1,170 @@
+//! How faithfully a run's models rank a planner's candidate paths, compared with the reference
+//! world itself.
+//!
+//! MPPI only needs a model to *order* candidates correctly. This drives the world's rope along
+//! the straight line from the task's start towards the gripper position of its target, stops at
+//! a fraction of the way (and holds 0.3 s), samples 48 candidate gripper paths around a mean
+//! that keeps heading to the target (MPPI's noise: covariance 0.1 of the normalised action,
+//! piecewise constant over three parts of the horizon), and scores every candidate with the
+//! task's running Chamfer cost as predicted by spring-mass, by PGRD and by the world. It prints,
+//! per fraction, the Spearman rank correlation of each model's costs with the world's and the
+//! regret (the world's cost of the model's best candidate minus the world's best), cm, averaged
+//! over five candidate draws.
+//!
+//! ```sh
+//! cargo run --release -p pgrd-plan --example rank_fidelity -- <run-dir> rope-rotate [0.4,0.6,0.8,1.0]
+//! ```
+//!
+//! `<run-dir>` holds `backbone.json` (from `cargo xtask fit`) and `residual.safetensors` (from
+//! `cargo xtask train`). World rope at full resolution with 250 observed points, as in
+//! `docs/RESULTS.md`.
+
+use std::path::Path;
+use std::sync::Arc;
+
+use glam::Vec3;
+use plan::{ForwardModel, ModelState, Pgrd, SpringMass, Task, TaskConfig, TaskKind, WorldOracle};
+use rand::SeedableRng;
+use rand_distr::{Distribution, Normal};
+
+const CANDIDATES: usize = 48;
+const DRAWS: u64 = 5;
+
+fn ranks(v: &[f64]) -> Vec<f64> {
+    let mut order: Vec<usize> = (0..v.len()).collect();
+    order.sort_by(|a, b| v[*a].total_cmp(&v[*b]));
+    let mut r = vec![0.0; v.len()];
+    for (k, i) in order.into_iter().enumerate() {
+        r[i] = k as f64;
+    }
+    r
+}
+
+fn spearman(a: &[f64], b: &[f64]) -> f64 {
+    let (ra, rb) = (ranks(a), ranks(b));
+    let m = (a.len() as f64 - 1.0) / 2.0;
+    let (mut c, mut va, mut vb) = (0.0, 0.0, 0.0);
+    for (x, y) in ra.iter().zip(&rb) {
+        c += (x - m) * (y - m);
+        va += (x - m).powi(2);
+        vb += (y - m).powi(2);
+    }
+    c / (va * vb).sqrt()
+}
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let args: Vec<String> = std::env::args().collect();
+    if args.len() < 3 {
+        return Err("usage: rank_fidelity <run-dir> <task> [fractions, comma-separated]".into());
+    }
+    let run = Path::new(&args[1]);
+    let kind: TaskKind = args[2].parse()?;
+    let fractions: Vec<f32> = args
+        .get(3)
+        .map_or("0.4,0.6,0.8,1.0", String::as_str)
+        .split(',')
+        .map(str::parse)
+        .collect::<Result<_, _>>()?;
+    let backbone: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(run.join("backbone.json"))?)?;
+    let params: springs::SpringParams = serde_json::from_value(backbone["params"].clone())?;
+    let net = Arc::new(residual::ResidualNet::load(
+        &run.join("residual.safetensors"),
+    )?);
+
+    let cfg = TaskConfig {
+        tracked: 250,
+        resolution: world::Resolution::Full,
+        ..TaskConfig::new()
+    };
+    let task = Task::build(kind, &cfg)?;
+    let objective = task.objective()?;
+    let mppi = kind.mppi();
+    let h = mppi.horizon;
+    let segment = h.div_ceil(mppi.noise_segments.max(1));
+    let noise = Normal::new(0.0f32, mppi.noise.sqrt() * mppi.max_step_m)?;
+    println!(
+        "{kind}: fraction of the way, Chamfer now, then spring-mass / PGRD: Spearman, regret (cm)"
+    );
+    for &frac in &fractions {
+        // The state a planner meets part of the way: the world driven straight towards the
+        // target's gripper position at up to 3 cm per step, then held for three steps.
+        let mut w = task.start.clone();
+        let g0 = w.gripper();
+        let at = g0 + (task.target_gripper - g0) * frac;
+        let n = ((at - g0).length() / 0.03).ceil().max(1.0) as usize;
+        let mut frames = vec![w.observe()];
+        for k in 1..=n {
+            w.step(g0 + (at - g0) * (k as f32 / n as f32))?;
+            frames.push(w.observe());
+        }
+        for _ in 0..3 {
+            w.step(at)?;
+            frames.push(w.observe());
+        }
+        let state = ModelState::from_frames(&frames[frames.len() - 4..], 0.1)?;
+        let models: [(&str, Box<dyn ForwardModel>); 2] = [
+            (
+                "spring-mass",
+                Box::new(SpringMass::new(task.backbone(params)?)),
+            ),
+            (
+                "pgrd",
+                Box::new(Pgrd::new(task.backbone(params)?, net.clone())),
+            ),
+        ];
+        let oracle = WorldOracle::new(w.clone());
+        let left = task.target_gripper - at;
+        let mean = left.normalize_or_zero() * (left.length() / h as f32).min(0.02);
+        let mut sums = [[0.0f64; 2]; 2];
+        for draw in 0..DRAWS {
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(draw);
+            let mut paths = Vec::with_capacity(CANDIDATES);
+            for _ in 0..CANDIDATES {
+                let mut g = at;
+                let mut d = Vec3::ZERO;
+                let mut path = vec![vec![g]];
+                for s in 0..h {
+                    if s % segment == 0 {
+                        let mut r = || noise.sample(&mut rng);
+                        d = mean + Vec3::new(r(), r(), r());
+                    }
+                    g += d;
+                    g.z = g.z.max(task.workspace.min.z);
+                    path.push(vec![g]);
+                }
+                paths.push(path);
+            }
+            let costs = |m: &dyn ForwardModel| -> Result<Vec<f64>, Box<dyn std::error::Error>> {
+                paths
+                    .iter()
+                    .map(|p| {
+                        let actions = springs::Actions::new(p.clone(), vec![vec![true]; h + 1])?;
+                        let predicted = m.rollout(&state, &actions)?;
+                        Ok(objective.cost(&predicted, &p[1..])?)
+                    })
+                    .collect()
+            };
+            let truth = costs(&oracle)?;
+            let best_true = truth.iter().copied().fold(f64::INFINITY, f64::min);
+            for (k, (_, m)) in models.iter().enumerate() {
+                let c = costs(m.as_ref())?;
+                let chosen = (0..c.len())
+                    .min_by(|a, b| c[*a].total_cmp(&c[*b]))
+                    .unwrap_or(0);
+                sums[k][0] += spearman(&c, &truth);
+                sums[k][1] += 100.0 * (truth[chosen] - best_true);
+            }
+        }
+        let now = 100.0 * objective.chamfer(&frames[frames.len() - 1])?;
+        let d = DRAWS as f64;
+        println!(
+            "{frac:4.2}  {now:5.2} cm  spring-mass {:.2}, {:.2}  pgrd {:.2}, {:.2}",
+            sums[0][0] / d,
+            sums[0][1] / d,
+            sums[1][0] / d,
+            sums[1][1] / d
+        );
+    }
+    Ok(())
+}
