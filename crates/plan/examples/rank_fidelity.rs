@@ -30,28 +30,6 @@ use rand_distr::{Distribution, Normal};
 const CANDIDATES: usize = 48;
 const DRAWS: u64 = 5;
 
-fn ranks(v: &[f64]) -> Vec<f64> {
-    let mut order: Vec<usize> = (0..v.len()).collect();
-    order.sort_by(|a, b| v[*a].total_cmp(&v[*b]));
-    let mut r = vec![0.0; v.len()];
-    for (k, i) in order.into_iter().enumerate() {
-        r[i] = k as f64;
-    }
-    r
-}
-
-fn spearman(a: &[f64], b: &[f64]) -> f64 {
-    let (ra, rb) = (ranks(a), ranks(b));
-    let m = (a.len() as f64 - 1.0) / 2.0;
-    let (mut c, mut va, mut vb) = (0.0, 0.0, 0.0);
-    for (x, y) in ra.iter().zip(&rb) {
-        c += (x - m) * (y - m);
-        va += (x - m).powi(2);
-        vb += (y - m).powi(2);
-    }
-    c / (va * vb).sqrt()
-}
-
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().collect();
     if args.len() < 3 {
@@ -152,7 +130,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 let chosen = (0..c.len())
                     .min_by(|a, b| c[*a].total_cmp(&c[*b]))
                     .unwrap_or(0);
-                sums[k][0] += spearman(&c, &truth);
+                let f32s = |v: &[f64]| v.iter().map(|x| *x as f32).collect::<Vec<f32>>();
+                sums[k][0] += gap::spearman(&f32s(&c), &f32s(&truth));
                 sums[k][1] += 100.0 * (truth[chosen] - best_true);
             }
         }
