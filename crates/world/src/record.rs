@@ -104,19 +104,17 @@ pub(crate) fn record(scene: &Scene<'_>, index: u64, frames: usize) -> Result<Rec
             ObjectKind::Rope => Vec3::new(c.x, c.y, 0.0),
             _ => Vec3::new(g0.x, g0.y, 0.0),
         };
+        // How far the settled object reaches below the gripper, m.
+        let hang = || (g0.z - sim.x.iter().map(|p| p.z).fold(f32::INFINITY, f32::min)).max(0.0);
         motion = match scene.motion {
             MotionStyle::Everyday => {
                 grasp_motion(scene.kind, g0, centre, duration, &mut motion_rng)
             }
             MotionStyle::Probing => {
-                let lowest = sim.x.iter().map(|p| p.z).fold(f32::INFINITY, f32::min);
-                let hang = (g0.z - lowest).max(0.0);
-                probing_motion(scene.kind, g0, hang, centre, duration, &mut motion_rng)
+                probing_motion(scene.kind, g0, hang(), centre, duration, &mut motion_rng)
             }
             MotionStyle::Planning => {
-                let lowest = sim.x.iter().map(|p| p.z).fold(f32::INFINITY, f32::min);
-                let hang = (g0.z - lowest).max(0.0);
-                planning_motion(scene.kind, g0, hang, duration, &mut motion_rng)
+                planning_motion(scene.kind, g0, hang(), duration, &mut motion_rng)
             }
         };
     }
