@@ -35,6 +35,13 @@ pub enum MotionStyle {
 }
 
 impl MotionStyle {
+    /// Every style, in the order the command line lists them.
+    pub const ALL: [MotionStyle; 3] = [
+        MotionStyle::Everyday,
+        MotionStyle::Probing,
+        MotionStyle::Planning,
+    ];
+
     /// Whether this is the default style (for serde's `skip_serializing_if`).
     pub fn is_everyday(&self) -> bool {
         *self == MotionStyle::Everyday
@@ -59,18 +66,14 @@ impl std::fmt::Display for MotionStyle {
 impl std::str::FromStr for MotionStyle {
     type Err = Error;
     fn from_str(s: &str) -> Result<Self, Error> {
-        [
-            MotionStyle::Everyday,
-            MotionStyle::Probing,
-            MotionStyle::Planning,
-        ]
-        .into_iter()
-        .find(|m| m.name() == s)
-        .ok_or_else(|| {
-            Error::Config(format!(
-                "unknown motion style `{s}` (expected everyday, probing or planning)"
-            ))
-        })
+        MotionStyle::ALL
+            .into_iter()
+            .find(|m| m.name() == s)
+            .ok_or_else(|| {
+                Error::Config(format!(
+                    "unknown motion style `{s}` (expected everyday, probing or planning)"
+                ))
+            })
     }
 }
 

@@ -130,11 +130,7 @@ fn planning_style_drags_the_rope_from_straight_starts() {
 
 #[test]
 fn styles_parse_by_name_and_unknown_names_are_errors() {
-    for m in [
-        MotionStyle::Everyday,
-        MotionStyle::Probing,
-        MotionStyle::Planning,
-    ] {
+    for m in MotionStyle::ALL {
         assert_eq!(m.name().parse::<MotionStyle>().unwrap(), m);
     }
     let e = "wiggle".parse::<MotionStyle>().unwrap_err().to_string();
