@@ -123,27 +123,26 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                     })
                     .collect()
             };
+            let f32s = |v: &[f64]| v.iter().map(|x| *x as f32).collect::<Vec<f32>>();
             let truth = costs(&oracle)?;
+            let truth_f32 = f32s(&truth);
             let best_true = truth.iter().copied().fold(f64::INFINITY, f64::min);
             for (k, (_, m)) in models.iter().enumerate() {
                 let c = costs(m.as_ref())?;
                 let chosen = (0..c.len())
                     .min_by(|a, b| c[*a].total_cmp(&c[*b]))
                     .unwrap_or(0);
-                let f32s = |v: &[f64]| v.iter().map(|x| *x as f32).collect::<Vec<f32>>();
-                sums[k][0] += gap::spearman(&f32s(&c), &f32s(&truth));
+                sums[k][0] += gap::spearman(&f32s(&c), &truth_f32);
                 sums[k][1] += 100.0 * (truth[chosen] - best_true);
             }
         }
         let now = 100.0 * objective.chamfer(&frames[frames.len() - 1])?;
         let d = DRAWS as f64;
-        println!(
-            "{frac:4.2}  {now:5.2} cm  spring-mass {:.2}, {:.2}  pgrd {:.2}, {:.2}",
-            sums[0][0] / d,
-            sums[0][1] / d,
-            sums[1][0] / d,
-            sums[1][1] / d
-        );
+        let mut line = format!("{frac:4.2}  {now:5.2} cm");
+        for ((name, _), [rho, regret]) in models.iter().zip(sums) {
+            line += &format!("  {name} {:.2}, {:.2}", rho / d, regret / d);
+        }
+        println!("{line}");
     }
     Ok(())
 }
