@@ -53,6 +53,11 @@ pub struct GenArgs {
     /// pushed teddy is poked in every style.
     #[arg(long, default_value_t = MotionStyle::Everyday)]
     pub motion: MotionStyle,
+    /// Gripper continuations per recording (`--motion planning` only): each recording is
+    /// replayed this many times from the same start, the gripper paths parting after about
+    /// 40 % of it, so the data show the same state under different actions.
+    #[arg(long, default_value_t = 1)]
+    pub branches: usize,
     /// Dataset size preset.
     #[arg(long, value_enum, default_value = "full")]
     pub preset: Preset,
@@ -81,6 +86,7 @@ pub fn run(args: &GenArgs) -> anyhow::Result<()> {
         cfg.observation = Observation::parse(&args.observation)?;
         cfg.seed = args.seed;
         cfg.motion = args.motion;
+        cfg.branches = args.branches;
         if let Some(e) = args.episodes {
             cfg.train_episodes = e;
         }

@@ -53,6 +53,12 @@ pub struct GenConfig {
     pub gaussian_particles: usize,
     /// How the gripper moves.
     pub motion: MotionStyle,
+    /// Gripper continuations of every recording (1: none). With `b > 1` (planning motions of a
+    /// grasped object) each recording yields `b` recordings that share the object, its start
+    /// and the first 40 % or so of the gripper path, then move on differently: the same state
+    /// under different actions. Each yields `episodes_per_recording` episodes, so a recording
+    /// gives up to `b × episodes_per_recording`.
+    pub branches: usize,
 }
 
 /// Default cap on the fine particles carrying ground-truth Gaussians in a full dataset.
@@ -87,6 +93,7 @@ impl GenConfig {
             seed: 0,
             gaussian_particles: DEFAULT_GAUSSIAN_PARTICLES,
             motion: MotionStyle::Everyday,
+            branches: 1,
         }
     }
 
@@ -112,6 +119,16 @@ impl GenConfig {
         if self.episodes_per_recording == 0 {
             return Err(Error::Config("episodes per recording must be >= 1".into()));
         }
+        if self.branches == 0 {
+            return Err(Error::Config("branches must be >= 1".into()));
+        }
+        if self.branches > 1 && (self.object.is_push() || self.motion != MotionStyle::Planning) {
+            return Err(Error::Config(format!(
+                "branched recordings need planning motions of a grasped object (got {} motions \
+                 of the {})",
+                self.motion, self.object
+            )));
+        }
         if self.tracked == 0 {
             return Err(Error::Config(
                 "at least one tracked particle is needed".into(),
@@ -131,6 +148,19 @@ pub struct RecordingInfo {
     pub split: Split,
     /// Stored frames.
     pub frames: usize,
+    /// Dataset indices of its episodes, in time order.
+    pub episodes: Vec<usize>,
+    /// Its other gripper continuations ([`GenConfig::branches`]), if any.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub branches: Vec<BranchInfo>,
+}
+
+/// One gripper continuation of a branched recording.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct BranchInfo {
+    /// The first frame at which its gripper path may differ from the recording's own; state
+    /// and observations before it are the recording's.
+    pub from_frame: usize,
     /// Dataset indices of its episodes, in time order.
     pub episodes: Vec<usize>,
 }
@@ -285,7 +315,7 @@ pub fn generate_with_progress(
     ] {
         let mut left = total;
         while left > 0 {
-            let e = left.min(cfg.episodes_per_recording);
+            let e = left.min(cfg.episodes_per_recording * cfg.branches);
             plans.push((plans.len(), split, e));
             left -= e;
         }
@@ -301,11 +331,13 @@ pub fn generate_with_progress(
         motion: cfg.motion,
     };
     let done = AtomicUsize::new(0);
-    let recordings: Vec<Recording> = plans
+    // Episodes per branch of each recording (all of them when it is not branched).
+    let per_branch = |e: usize| e.min(cfg.episodes_per_recording);
+    let recordings: Vec<Vec<Recording>> = plans
         .par_iter()
         .map(|&(index, _, e)| {
-            let frames = FRAMES_PER_EPISODE + EPISODE_STRIDE * (e - 1);
-            let r = record(&scene, index as u64, frames);
+            let frames = FRAMES_PER_EPISODE + EPISODE_STRIDE * (per_branch(e) - 1);
+            let r = record(&scene, index as u64, frames, e.div_ceil(per_branch(e)));
             progress(done.fetch_add(1, Ordering::SeqCst) + 1, plans.len());
             r
         })
@@ -322,41 +354,55 @@ pub fn generate_with_progress(
     let mut gaussians = Vec::new();
     let mut episodes = Vec::new();
     let mut infos = Vec::new();
-    for ((index, split, e), rec) in plans.iter().zip(&recordings) {
-        if !gaussian_particles.is_empty() {
-            let starts: Vec<usize> = (0..*e).map(|j| j * EPISODE_STRIDE).collect();
-            gaussians.extend(truth_gaussians::episodes(
-                &bp,
-                &gaussian_particles,
-                &sigmas,
-                &rec.fine,
-                &starts,
-                FRAMES_PER_EPISODE,
-            )?);
-        }
-        let mut ids = Vec::new();
-        for j in 0..*e {
-            let f0 = j * EPISODE_STRIDE;
-            let frames = f0..f0 + FRAMES_PER_EPISODE;
-            let pos = rec.observed[frames.start * n..frames.end * n].to_vec();
-            let grip = rec.grippers[frames.clone()].to_vec();
-            let vis = rec.visible[frames.start * n..frames.end * n].to_vec();
-            let mut ep = Episode::new(FRAMES_PER_EPISODE, n, 1, pos, grip)?
-                .with_held(held.clone())?
-                .with_colors(colors.clone())?
-                .with_visible(vis)?;
-            if !cfg.object.is_push() {
-                ep = ep.with_closed(vec![1; FRAMES_PER_EPISODE])?;
-            }
-            ids.push(episodes.len());
-            episodes.push((ep, *split));
-        }
-        infos.push(RecordingInfo {
+    for ((index, split, e), branches) in plans.iter().zip(&recordings) {
+        let mut left = *e;
+        let mut info = RecordingInfo {
             index: *index,
             split: *split,
-            frames: rec.grippers.len(),
-            episodes: ids,
-        });
+            frames: branches[0].grippers.len(),
+            episodes: Vec::new(),
+            branches: Vec::new(),
+        };
+        for rec in branches {
+            let cut = left.min(per_branch(*e));
+            left -= cut;
+            if !gaussian_particles.is_empty() {
+                let starts: Vec<usize> = (0..cut).map(|j| j * EPISODE_STRIDE).collect();
+                gaussians.extend(truth_gaussians::episodes(
+                    &bp,
+                    &gaussian_particles,
+                    &sigmas,
+                    &rec.fine,
+                    &starts,
+                    FRAMES_PER_EPISODE,
+                )?);
+            }
+            let mut ids = Vec::new();
+            for j in 0..cut {
+                let f0 = j * EPISODE_STRIDE;
+                let frames = f0..f0 + FRAMES_PER_EPISODE;
+                let pos = rec.observed[frames.start * n..frames.end * n].to_vec();
+                let grip = rec.grippers[frames.clone()].to_vec();
+                let vis = rec.visible[frames.start * n..frames.end * n].to_vec();
+                let mut ep = Episode::new(FRAMES_PER_EPISODE, n, 1, pos, grip)?
+                    .with_held(held.clone())?
+                    .with_colors(colors.clone())?
+                    .with_visible(vis)?;
+                if !cfg.object.is_push() {
+                    ep = ep.with_closed(vec![1; FRAMES_PER_EPISODE])?;
+                }
+                ids.push(episodes.len());
+                episodes.push((ep, *split));
+            }
+            match rec.branch_frame {
+                None => info.episodes = ids,
+                Some(from_frame) => info.branches.push(BranchInfo {
+                    from_frame,
+                    episodes: ids,
+                }),
+            }
+        }
+        infos.push(info);
     }
 
     let mut meta = DatasetMeta::new(

@@ -458,10 +458,51 @@ pub(crate) fn planning_motion(
     rng: &mut impl Rng,
 ) -> Motion {
     let f = probe_frame(kind, start, hang);
-    // The rope tasks move the gripper up to 45 cm (rerouting farther, in many moves).
-    let reach = if kind == ObjectKind::Rope { 0.6 } else { 0.3 };
     let mut m = Motion::new(start, f.contact_z.min(start.z) - 0.005);
     m.push(rng.random_range(0.1..0.4), start);
+    planning_moves(&mut m, kind, &f, start, duration, rng);
+    m.set_velocities(rng, 1);
+    m
+}
+
+/// A branch of the planning trajectory `trunk` (made by [`planning_motion`] with the same
+/// `kind`, `start` and `hang`): identical to it up to its first waypoint at or after `after`
+/// seconds, then fresh random moves until `duration`. The branch waypoint keeps the trunk's
+/// velocity, so the two trajectories agree exactly up to it. Returns the branch and that
+/// waypoint's time, s (`None` when the trunk has no waypoint after `after` before its end).
+pub(crate) fn planning_branch(
+    trunk: &Motion,
+    kind: ObjectKind,
+    start: Vec3,
+    hang: f32,
+    after: f32,
+    duration: f32,
+    rng: &mut impl Rng,
+) -> Option<(Motion, f32)> {
+    let last = trunk.knots.len().checked_sub(1)?;
+    let k = trunk.knots.iter().position(|q| q.t >= after)?;
+    if k >= last || trunk.knots[k].t >= duration {
+        return None;
+    }
+    let f = probe_frame(kind, start, hang);
+    let mut m = trunk.clone();
+    m.knots.truncate(k + 1);
+    planning_moves(&mut m, kind, &f, start, duration, rng);
+    m.set_velocities(rng, k + 1);
+    Some((m, trunk.knots[k].t))
+}
+
+/// Appends planner-style moves to `m` until it covers `duration` seconds (velocities unset).
+fn planning_moves(
+    m: &mut Motion,
+    kind: ObjectKind,
+    f: &ProbeFrame,
+    start: Vec3,
+    duration: f32,
+    rng: &mut impl Rng,
+) {
+    // The rope tasks move the gripper up to 45 cm (rerouting farther, in many moves).
+    let reach = if kind == ObjectKind::Rope { 0.6 } else { 0.3 };
     while m.end_time() < duration {
         let p = m.last();
         if rng.random_bool(0.1) {
@@ -492,8 +533,6 @@ pub(crate) fn planning_motion(
         // A long vertical move takes at least what 15 cm/s allows.
         m.push(dt.max(dz / speed.max(0.15)), q);
     }
-    m.set_velocities(rng, 1);
-    m
 }
 
 /// Online planner of pokes for a pushed object: every poke is aimed at the object's current

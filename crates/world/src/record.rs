@@ -7,7 +7,8 @@ use rand::Rng;
 use crate::build::{Blueprint, place};
 use crate::effects::Effects;
 use crate::motion::{
-    Motion, MotionStyle, PokePlanner, grasp_motion, planning_motion, probing_motion,
+    Motion, MotionStyle, PokePlanner, grasp_motion, planning_branch, planning_motion,
+    probing_motion,
 };
 use crate::observation::Observation;
 use crate::rng::{stream, tag};
@@ -36,6 +37,9 @@ pub(crate) struct Scene<'a> {
     pub motion: MotionStyle,
 }
 
+/// Where branches leave the trunk: the first waypoint after this fraction of the recording.
+const BRANCH_AFTER: f32 = 0.4;
+
 /// The sampled recording.
 pub(crate) struct Recording {
     /// Observed tracked positions `[frames × n]`, m.
@@ -46,6 +50,9 @@ pub(crate) struct Recording {
     pub grippers: Vec<Vec3>,
     /// True positions of the scene's `gaussian_particles` `[frames × m]`, m.
     pub fine: Vec<Vec3>,
+    /// The first frame at which this branch's gripper path may differ from the trunk's (the
+    /// trunk itself: `None`).
+    pub branch_frame: Option<usize>,
 }
 
 /// The grasp mode implied by the effects for `n` held particles.
@@ -60,7 +67,18 @@ pub(crate) fn grasp_mode(effects: &Effects, n: usize) -> GraspMode {
 }
 
 /// Simulates recording `index` for `frames` stored frames.
-pub(crate) fn record(scene: &Scene<'_>, index: u64, frames: usize) -> Result<Recording, Error> {
+///
+/// With `branches = b > 1` (planning motions only) it returns `b` recordings of the same
+/// object from the same start: the first follows the recording's own gripper path (the trunk),
+/// every other one shares the trunk's path and state up to the trunk's first waypoint after
+/// 40 % of the recording and then takes fresh random moves. They share the tracker's random
+/// draws, so their observations agree exactly before the branch point.
+pub(crate) fn record(
+    scene: &Scene<'_>,
+    index: u64,
+    frames: usize,
+    branches: usize,
+) -> Result<Vec<Recording>, Error> {
     let bp = scene.bp;
     let mut place_rng = stream(scene.seed, &[tag::PLACEMENT, index]);
     let mut motion_rng = stream(scene.seed, &[tag::MOTION, index]);
@@ -68,6 +86,11 @@ pub(crate) fn record(scene: &Scene<'_>, index: u64, frames: usize) -> Result<Rec
     let straight = scene.motion == MotionStyle::Planning && place_rng.random_bool(0.5);
     let (x, g0) = place(scene.kind, bp, straight, &mut place_rng);
     let push = scene.kind.is_push().then_some(PUSH_RADIUS);
+    if branches > 1 && (push.is_some() || scene.motion != MotionStyle::Planning) {
+        return Err(Error::Config(
+            "branched recordings need a grasped object and planning motions".into(),
+        ));
+    }
     let mut sim = Sim::new(bp, scene.effects, x, push);
     let planner = push.map(|radius| PokePlanner {
         radius,
@@ -98,62 +121,134 @@ pub(crate) fn record(scene: &Scene<'_>, index: u64, frames: usize) -> Result<Rec
         sim.substep(h, &[settle_gripper]);
     }
     sim.settle_rate = 0.0;
+    // How far the settled object reaches below the gripper, m.
+    let hang = (g0.z - sim.x.iter().map(|p| p.z).fold(f32::INFINITY, f32::min)).max(0.0);
     if planner.is_none() {
         let c = crate::build::centroid_of(&sim.x);
         let centre = match scene.kind {
             ObjectKind::Rope => Vec3::new(c.x, c.y, 0.0),
             _ => Vec3::new(g0.x, g0.y, 0.0),
         };
-        // How far the settled object reaches below the gripper, m.
-        let hang = || (g0.z - sim.x.iter().map(|p| p.z).fold(f32::INFINITY, f32::min)).max(0.0);
         motion = match scene.motion {
             MotionStyle::Everyday => {
                 grasp_motion(scene.kind, g0, centre, duration, &mut motion_rng)
             }
             MotionStyle::Probing => {
-                probing_motion(scene.kind, g0, hang(), centre, duration, &mut motion_rng)
+                probing_motion(scene.kind, g0, hang, centre, duration, &mut motion_rng)
             }
             MotionStyle::Planning => {
-                planning_motion(scene.kind, g0, hang(), duration, &mut motion_rng)
+                planning_motion(scene.kind, g0, hang, duration, &mut motion_rng)
             }
         };
     }
 
-    let n = scene.tracked.len();
-    let mut truth = Vec::with_capacity(frames * n);
-    let mut grippers = Vec::with_capacity(frames);
-    let mut fine = Vec::with_capacity(frames * scene.gaussian_particles.len());
-    for k in 0..frames {
-        let t = k as f32 * STEP_S;
-        if let Some(p) = &planner {
-            p.extend(&mut motion, &sim.x, t + lag + 2.0, &mut motion_rng);
-        }
-        truth.extend(scene.tracked.iter().map(|&i| sim.x[i as usize]));
-        fine.extend(scene.gaussian_particles.iter().map(|&i| sim.x[i as usize]));
-        grippers.push(motion.at(t));
-        if k + 1 == frames {
-            break;
-        }
-        for s in 1..=bp.substeps {
-            let ts = t + s as f32 * h;
-            sim.substep(h, &[motion.at(ts - lag)]);
-        }
-        if !sim.is_finite() {
-            return Err(Error::Diverged {
-                object: scene.kind.name().to_string(),
-                recording: index as usize,
-                frame: k + 1,
-            });
+    // The branches' paths, and the frame up to which they all agree with the trunk's.
+    let mut paths = vec![(motion, None)];
+    let mut shared = frames;
+    if branches > 1 {
+        let after = BRANCH_AFTER * frames as f32 * STEP_S;
+        for b in 1..branches {
+            let mut rng = stream(scene.seed, &[tag::MOTION, index, b as u64]);
+            let (m, t) =
+                planning_branch(&paths[0].0, scene.kind, g0, hang, after, duration, &mut rng)
+                    .ok_or_else(|| {
+                        Error::Config(format!(
+                            "recording {index} is too short to branch ({frames} frames)"
+                        ))
+                    })?;
+            // Frames up to floor(t / step) are simulated with times <= t, where the paths agree.
+            shared = ((t / STEP_S).floor() as usize).min(frames);
+            paths.push((m, Some(shared)));
         }
     }
-    let mut obs_rng = stream(scene.seed, &[tag::OBSERVATION, index]);
-    let (observed, visible) = scene
-        .observation
-        .apply(&truth, n, &grippers, STEP_S, &mut obs_rng);
-    Ok(Recording {
-        observed,
-        visible,
-        grippers,
-        fine,
-    })
+
+    let n = scene.tracked.len();
+    let m_fine = scene.gaussian_particles.len();
+    let mut trunk = Track::default();
+    let mut out = Vec::with_capacity(paths.len());
+    let run = |sim: &mut Sim,
+               motion: &mut Motion,
+               range: std::ops::Range<usize>,
+               track: &mut Track,
+               rng: &mut rand_chacha::ChaCha8Rng|
+     -> Result<(), Error> {
+        for k in range {
+            let t = k as f32 * STEP_S;
+            if let Some(p) = &planner {
+                p.extend(motion, &sim.x, t + lag + 2.0, rng);
+            }
+            track
+                .truth
+                .extend(scene.tracked.iter().map(|&i| sim.x[i as usize]));
+            track
+                .fine
+                .extend(scene.gaussian_particles.iter().map(|&i| sim.x[i as usize]));
+            track.grippers.push(motion.at(t));
+            if k + 1 == frames {
+                break;
+            }
+            for s in 1..=bp.substeps {
+                let ts = t + s as f32 * h;
+                sim.substep(h, &[motion.at(ts - lag)]);
+            }
+            if !sim.is_finite() {
+                return Err(Error::Diverged {
+                    object: scene.kind.name().to_string(),
+                    recording: index as usize,
+                    frame: k + 1,
+                });
+            }
+        }
+        Ok(())
+    };
+    let mut trunk_motion = paths[0].0.clone();
+    run(
+        &mut sim,
+        &mut trunk_motion,
+        0..shared,
+        &mut trunk,
+        &mut motion_rng,
+    )?;
+    let last = paths.len() - 1;
+    for (b, (mut path, branch_frame)) in paths.into_iter().enumerate() {
+        let mut track = trunk.clone();
+        // The last branch may consume the trunk's state; the others simulate a copy.
+        let mut own;
+        let state = if b == last {
+            &mut sim
+        } else {
+            own = sim.clone();
+            &mut own
+        };
+        run(
+            state,
+            &mut path,
+            shared..frames,
+            &mut track,
+            &mut motion_rng.clone(),
+        )?;
+        debug_assert_eq!(track.grippers.len(), frames);
+        debug_assert_eq!(track.fine.len(), frames * m_fine);
+        let mut obs_rng = stream(scene.seed, &[tag::OBSERVATION, index]);
+        let (observed, visible) =
+            scene
+                .observation
+                .apply(&track.truth, n, &track.grippers, STEP_S, &mut obs_rng);
+        out.push(Recording {
+            observed,
+            visible,
+            grippers: track.grippers,
+            fine: track.fine,
+            branch_frame,
+        });
+    }
+    Ok(out)
+}
+
+/// What a recording keeps of the simulation, frame by frame.
+#[derive(Clone, Default)]
+struct Track {
+    truth: Vec<Vec3>,
+    grippers: Vec<Vec3>,
+    fine: Vec<Vec3>,
 }

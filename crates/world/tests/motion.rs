@@ -151,3 +151,67 @@ fn truth_files_without_a_motion_field_read_as_everyday() {
     let truth: world::Truth = serde_json::from_value(json).unwrap();
     assert_eq!(truth.motion, MotionStyle::Everyday);
 }
+
+#[test]
+fn branches_share_the_start_and_part_after_the_branch_frame() {
+    let mut cfg = small(ObjectKind::Rope, MotionStyle::Planning);
+    // Two recordings of three branches each, one episode per branch; default tracker noise,
+    // so "identical before the branch" covers the observations too.
+    (cfg.train_episodes, cfg.episodes_per_recording, cfg.branches) = (6, 1, 3);
+    cfg.observation = Observation::default();
+    let data = generate(&cfg).unwrap();
+    assert_eq!(data.episodes.len(), 6);
+    assert_eq!(data.truth.recordings.len(), 2);
+    for rec in &data.truth.recordings {
+        assert_eq!(rec.branches.len(), 2);
+        let trunk = &data.episodes[rec.episodes[0]].0;
+        let n = trunk.particles();
+        for branch in &rec.branches {
+            let f = branch.from_frame;
+            assert!((8..40).contains(&f), "branch frame {f}");
+            let other = &data.episodes[branch.episodes[0]].0;
+            // Everything up to and including the branch frame is shared.
+            assert_eq!(
+                trunk.positions()[..(f + 1) * n],
+                other.positions()[..(f + 1) * n]
+            );
+            assert_eq!(
+                trunk.gripper_positions()[..=f],
+                other.gripper_positions()[..=f]
+            );
+            // The gripper paths part afterwards, and so do the objects.
+            let apart = |a: &[Vec3], b: &[Vec3]| {
+                a.iter()
+                    .zip(b)
+                    .map(|(p, q)| p.distance(*q))
+                    .fold(0.0, f32::max)
+            };
+            let grip = apart(trunk.gripper_positions(), other.gripper_positions());
+            let rope = apart(&trunk.positions()[39 * n..], &other.positions()[39 * n..]);
+            assert!(
+                grip > 0.01 && rope > 0.005,
+                "gripper {grip} m, rope {rope} m apart"
+            );
+        }
+    }
+    // One branch is the plain recording: the same dataset as without branching.
+    (cfg.train_episodes, cfg.branches) = (2, 1);
+    let plain = generate(&cfg).unwrap();
+    assert!(plain.truth.recordings.iter().all(|r| r.branches.is_empty()));
+    assert_eq!(
+        plain.episodes[1].0.positions(),
+        data.episodes[data.truth.recordings[1].episodes[0]]
+            .0
+            .positions()
+    );
+}
+
+#[test]
+fn branching_everyday_motions_is_a_configuration_error() {
+    let mut cfg = small(ObjectKind::Rope, MotionStyle::Everyday);
+    cfg.branches = 2;
+    let err = generate(&cfg).unwrap_err().to_string();
+    assert!(err.contains("planning"), "{err}");
+    cfg.branches = 0;
+    assert!(generate(&cfg).is_err());
+}
