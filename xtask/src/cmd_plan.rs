@@ -12,7 +12,7 @@ use plan::{
 };
 use serde::Serialize;
 
-use crate::common::{read_backbone, read_residual};
+use crate::common::{BackboneFile, read_backbone, read_residual};
 use crate::report::{Curve, plot_curves, write_json};
 
 /// `--model`.
@@ -124,13 +124,6 @@ struct ModelReport {
 pub fn run(args: &PlanArgs) -> anyhow::Result<()> {
     let kind: TaskKind = args.task.parse()?;
     let backbone = read_backbone(&args.run)?;
-    if !backbone.effects.is_empty() {
-        anyhow::bail!(
-            "{}: planning with a backbone that carries effects ({}) is not supported yet; plan with a plain fit's run",
-            args.run.display(),
-            backbone.label()
-        );
-    }
     let net = read_residual(&args.run)?.map(std::sync::Arc::new);
     let models = if args.model.is_empty() {
         let mut m = vec![ModelArg::SpringMass];
@@ -183,7 +176,7 @@ pub fn run(args: &PlanArgs) -> anyhow::Result<()> {
                 let oracle = WorldOracle::new(task.start.clone());
                 run_trial(&oracle, &mut oracle.system(), task, seed, args.max_steps)?
             } else {
-                let bb = task.backbone(backbone.params)?;
+                let bb = task_backbone(task, &backbone)?;
                 let model: Box<dyn ForwardModel> = match (m, &net) {
                     (ModelArg::Pgrd, Some(net)) => Box::new(Pgrd::new(bb, net.clone())),
                     _ => Box::new(SpringMass::new(bb)),
@@ -192,7 +185,7 @@ pub fn run(args: &PlanArgs) -> anyhow::Result<()> {
                 run_trial(model.as_ref(), &mut world, task, seed, args.max_steps)?
             };
             report.trial = t;
-            for (name, scorer) in scorers(task, backbone.params, net.as_ref())? {
+            for (name, scorer) in scorers(task, &backbone, net.as_ref())? {
                 report.path_error_cm.insert(
                     name,
                     path_error_cm(scorer.as_ref(), &traj, kind.mppi().horizon),
@@ -385,20 +378,34 @@ fn run_trial(
 /// run has a network.
 fn scorers(
     task: &Task,
-    params: springs::SpringParams,
+    backbone: &BackboneFile,
     net: Option<&std::sync::Arc<residual::ResidualNet>>,
 ) -> anyhow::Result<Vec<(&'static str, Box<dyn ForwardModel>)>> {
     let mut out: Vec<(&'static str, Box<dyn ForwardModel>)> = vec![(
         "spring-mass",
-        Box::new(SpringMass::new(task.backbone(params)?)),
+        Box::new(SpringMass::new(task_backbone(task, backbone)?)),
     )];
     if let Some(net) = net {
         out.push((
             "pgrd",
-            Box::new(Pgrd::new(task.backbone(params)?, net.clone())),
+            Box::new(Pgrd::new(task_backbone(task, backbone)?, net.clone())),
         ));
     }
     Ok(out)
+}
+
+/// The run's backbone for `task`, with the library effects its `backbone.json` carries (from
+/// `diagnose --write-run`). Effects placed along the object (stiffness heterogeneity, mass
+/// distribution) take their material coordinate from the task's start shape.
+fn task_backbone(task: &Task, backbone: &BackboneFile) -> anyhow::Result<springs::Backbone> {
+    if backbone.effects.is_empty() {
+        return Ok(task.backbone(backbone.params)?);
+    }
+    let rest = task.start.observe();
+    let centre = rest.iter().copied().sum::<Vec3>() / rest.len().max(1) as f32;
+    let frame = gap::MaterialFrame::new(&rest, centre)?;
+    let options = gap::backbone_options(&backbone.effects, &frame);
+    Ok(task.backbone_with(backbone.params, options)?)
 }
 
 /// How well `model` predicts what the world did along an executed path: from every executed

@@ -9,14 +9,18 @@
 //! task's running Chamfer cost as predicted by spring-mass, by PGRD and by the world. It prints,
 //! per fraction, the Spearman rank correlation of each model's costs with the world's and the
 //! regret (the world's cost of the model's best candidate minus the world's best), cm, averaged
-//! over five candidate draws.
+//! over five candidate draws. For PGRD it also prints how the network's correction of the
+//! backbone's costs (PGRD's cost minus spring-mass's, per candidate) compares with the correction
+//! the world would need (the world's cost minus spring-mass's): their Pearson correlation over the
+//! candidates and the two mean corrections, cm.
 //!
 //! ```sh
 //! cargo run --release -p pgrd-plan --example rank_fidelity -- <run-dir> rope-rotate [0.4,0.6,0.8,1.0]
 //! ```
 //!
 //! `<run-dir>` holds `backbone.json` (from `cargo xtask fit`) and `residual.safetensors` (from
-//! `cargo xtask train`). World rope at full resolution with 250 observed points, as in
+//! `cargo xtask train`); a backbone that carries library effects (`diagnose --write-run`) gets
+//! them. World rope at full resolution with 250 observed points, as in
 //! `docs/RESULTS.md`.
 
 use std::path::Path;
@@ -46,6 +50,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let backbone: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(run.join("backbone.json"))?)?;
     let params: springs::SpringParams = serde_json::from_value(backbone["params"].clone())?;
+    // Library effects of a diagnosed run (`diagnose --write-run`), placed along the task's start.
+    let effects: Vec<gap::BaseEffect> = match backbone.get("effects") {
+        Some(e) => serde_json::from_value(e.clone())?,
+        None => Vec::new(),
+    };
     let net = Arc::new(residual::ResidualNet::load(
         &run.join("residual.safetensors"),
     )?);
@@ -57,12 +66,17 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     };
     let task = Task::build(kind, &cfg)?;
     let objective = task.objective()?;
+    let rest = task.start.observe();
+    let centre = rest.iter().copied().sum::<Vec3>() / rest.len() as f32;
+    let frame = gap::MaterialFrame::new(&rest, centre)?;
+    let make = || task.backbone_with(params, gap::backbone_options(&effects, &frame));
     let mppi = kind.mppi();
     let h = mppi.horizon;
     let segment = h.div_ceil(mppi.noise_segments.max(1));
     let noise = Normal::new(0.0f32, mppi.noise.sqrt() * mppi.max_step_m)?;
     println!(
-        "{kind}: fraction of the way, Chamfer now, then spring-mass / PGRD: Spearman, regret (cm)"
+        "{kind}: fraction of the way, Chamfer now, then spring-mass / PGRD: Spearman, regret (cm); \
+         the network's cost correction vs the needed one: correlation, means (cm)"
     );
     for &frac in &fractions {
         // The state a planner meets part of the way: the world driven straight towards the
@@ -82,19 +96,15 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         }
         let state = ModelState::from_frames(&frames[frames.len() - 4..], 0.1)?;
         let models: [(&str, Box<dyn ForwardModel>); 2] = [
-            (
-                "spring-mass",
-                Box::new(SpringMass::new(task.backbone(params)?)),
-            ),
-            (
-                "pgrd",
-                Box::new(Pgrd::new(task.backbone(params)?, net.clone())),
-            ),
+            ("spring-mass", Box::new(SpringMass::new(make()?))),
+            ("pgrd", Box::new(Pgrd::new(make()?, net.clone()))),
         ];
         let oracle = WorldOracle::new(w.clone());
         let left = task.target_gripper - at;
         let mean = left.normalize_or_zero() * (left.length() / h as f32).min(0.02);
         let mut sums = [[0.0f64; 2]; 2];
+        // Network's correction vs the needed one: correlation, mean of each (cm).
+        let mut correction = [0.0f64; 3];
         for draw in 0..DRAWS {
             let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(draw);
             let mut paths = Vec::with_capacity(CANDIDATES);
@@ -127,14 +137,25 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             let truth = costs(&oracle)?;
             let truth_f32 = f32s(&truth);
             let best_true = truth.iter().copied().fold(f64::INFINITY, f64::min);
+            let mut predicted = Vec::with_capacity(models.len());
             for (k, (_, m)) in models.iter().enumerate() {
                 let c = costs(m.as_ref())?;
+                predicted.push(c.clone());
                 let chosen = (0..c.len())
                     .min_by(|a, b| c[*a].total_cmp(&c[*b]))
                     .unwrap_or(0);
                 sums[k][0] += gap::spearman(&f32s(&c), &truth_f32);
                 sums[k][1] += 100.0 * (truth[chosen] - best_true);
             }
+            let net: Vec<f64> = (0..truth.len())
+                .map(|i| predicted[1][i] - predicted[0][i])
+                .collect();
+            let needed: Vec<f64> = (0..truth.len())
+                .map(|i| truth[i] - predicted[0][i])
+                .collect();
+            correction[0] += pearson(&net, &needed);
+            correction[1] += 100.0 * average(&net);
+            correction[2] += 100.0 * average(&needed);
         }
         let now = 100.0 * objective.chamfer(&frames[frames.len() - 1])?;
         let d = DRAWS as f64;
@@ -142,7 +163,33 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         for ((name, _), [rho, regret]) in models.iter().zip(sums) {
             line += &format!("  {name} {:.2}, {:.2}", rho / d, regret / d);
         }
+        line += &format!(
+            "  correction r {:.2}, mean {:+.2} (needed {:+.2})",
+            correction[0] / d,
+            correction[1] / d,
+            correction[2] / d
+        );
         println!("{line}");
     }
     Ok(())
+}
+
+fn average(a: &[f64]) -> f64 {
+    a.iter().sum::<f64>() / a.len().max(1) as f64
+}
+
+/// Pearson correlation of `a` and `b` (0 when either is constant).
+fn pearson(a: &[f64], b: &[f64]) -> f64 {
+    let (ma, mb) = (average(a), average(b));
+    let (mut ab, mut aa, mut bb) = (0.0, 0.0, 0.0);
+    for (x, y) in a.iter().zip(b) {
+        ab += (x - ma) * (y - mb);
+        aa += (x - ma) * (x - ma);
+        bb += (y - mb) * (y - mb);
+    }
+    if aa > 0.0 && bb > 0.0 {
+        ab / (aa * bb).sqrt()
+    } else {
+        0.0
+    }
 }

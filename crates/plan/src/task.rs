@@ -7,7 +7,7 @@ use glam::Vec3;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
-use springs::{Backbone, BoxObstacle, Obstacles, SimConfig, SpringParams};
+use springs::{Backbone, BackboneOptions, BoxObstacle, Obstacles, SimConfig, SpringParams};
 use world::{ObjectKind, Plant, PlantConfig, Resolution};
 
 use crate::{CostMode, MppiConfig, Objective, PlanError, Result, Workspace};
@@ -353,15 +353,26 @@ impl Task {
     /// tracked points (springs from their start positions), held ones follow the gripper, the
     /// table is at z = 0 and the slot's blocks are obstacles.
     pub fn backbone(&self, params: SpringParams) -> Result<Backbone> {
+        self.backbone_with(params, BackboneOptions::default())
+    }
+
+    /// [`Task::backbone`] with extra force terms or masses (a backbone that carries the
+    /// effects of a gap diagnosis).
+    pub fn backbone_with(
+        &self,
+        params: SpringParams,
+        options: BackboneOptions,
+    ) -> Result<Backbone> {
         let config = SimConfig {
             obstacles: Obstacles::new(&self.obstacles()?)?,
             ..SimConfig::default()
         };
-        Ok(Backbone::new(
+        Ok(Backbone::with_options(
             &self.start.observe(),
             self.start.held(),
             params,
             config,
+            options,
         )?)
     }
 }

@@ -78,3 +78,40 @@ fn spring_mass_mppi_lifts_the_world_rope() {
     assert_eq!(traj.observed.len(), traj.grippers.len());
     assert_eq!(traj.replans.len() + 1, traj.observed.len());
 }
+
+#[test]
+fn a_backbone_with_effects_predicts_differently_and_default_options_change_nothing() {
+    use plan::{ForwardModel, ModelState};
+    let task = Task::build(TaskKind::RopeRotate, &config(0)).unwrap();
+    let params = springs::SpringParams::reference_rope();
+    let rest = task.start.observe();
+    let state = ModelState::from_frames(&[rest.clone(), rest.clone()], 0.1).unwrap();
+    let g = task.start.gripper();
+    let path: Vec<Vec<Vec3>> = (0..=5)
+        .map(|k| vec![g + Vec3::new(0.0, 0.03 * k as f32, 0.0)])
+        .collect();
+    let actions = springs::Actions::new(path, vec![vec![true]; 6]).unwrap();
+    let predict = |bb: springs::Backbone| SpringMass::new(bb).rollout(&state, &actions).unwrap();
+    let plain = predict(task.backbone(params).unwrap());
+    let default = predict(
+        task.backbone_with(params, springs::BackboneOptions::default())
+            .unwrap(),
+    );
+    assert_eq!(plain, default);
+    let centre = rest.iter().copied().sum::<Vec3>() / rest.len() as f32;
+    let frame = gap::MaterialFrame::new(&rest, centre).unwrap();
+    let effects = gap::BaseEffect::parse_list("bending=0.3").unwrap();
+    let bent = predict(
+        task.backbone_with(params, gap::backbone_options(&effects, &frame))
+            .unwrap(),
+    );
+    let moved = plain[4]
+        .iter()
+        .zip(&bent[4])
+        .map(|(a, b)| a.distance(*b))
+        .fold(0.0f32, f32::max);
+    assert!(
+        moved > 1e-3,
+        "bending moved the prediction by only {moved} m"
+    );
+}
