@@ -466,30 +466,31 @@ pub(crate) fn planning_motion(
 }
 
 /// A branch of the planning trajectory `trunk` (made by [`planning_motion`] with the same
-/// `kind`, `start` and `hang`): identical to it up to its first waypoint at or after `after`
-/// seconds, then fresh random moves until `duration`. The branch waypoint keeps the trunk's
-/// velocity, so the two trajectories agree exactly up to it. Returns the branch and that
-/// waypoint's time, s (`None` when the trunk has no waypoint after `after` before its end).
+/// `kind`, `start` and `hang`): identical to it up to a waypoint, then fresh random moves until
+/// `duration`. The waypoint is the trunk's first one at or after `after` seconds, or, when that
+/// one is not before `before`, its last one before `before` (never the start). It keeps the
+/// trunk's velocity, so the two trajectories agree exactly up to it. Returns the branch and
+/// that waypoint's time, s (`None` when the trunk has no waypoint in (0, `before`)).
 pub(crate) fn planning_branch(
     trunk: &Motion,
     kind: ObjectKind,
     start: Vec3,
     hang: f32,
-    after: f32,
+    (after, before): (f32, f32),
     duration: f32,
     rng: &mut impl Rng,
 ) -> Option<(Motion, f32)> {
-    let last = trunk.knots.len().checked_sub(1)?;
-    let k = trunk.knots.iter().position(|q| q.t >= after)?;
-    if k >= last || trunk.knots[k].t >= duration {
-        return None;
-    }
+    let knots = &trunk.knots;
+    let k = knots
+        .iter()
+        .position(|q| q.t >= after && q.t < before)
+        .or_else(|| knots.iter().rposition(|q| q.t > 0.0 && q.t < before))?;
     let f = probe_frame(kind, start, hang);
     let mut m = trunk.clone();
     m.knots.truncate(k + 1);
     planning_moves(&mut m, kind, &f, start, duration, rng);
     m.set_velocities(rng, k + 1);
-    Some((m, trunk.knots[k].t))
+    Some((m, knots[k].t))
 }
 
 /// Appends planner-style moves to `m` until it covers `duration` seconds (velocities unset).
@@ -636,5 +637,46 @@ impl PokePlanner {
                 (lateral < band).then_some(along)
             })
             .fold(0.0, f32::max)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::SeedableRng;
+
+    #[test]
+    fn a_branch_keeps_the_trunk_up_to_its_waypoint_and_falls_back_when_that_is_too_late() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        let start = Vec3::new(0.0, 0.0, 0.02);
+        let mut trunk = Motion::new(start, 0.0);
+        trunk.push(0.3, start);
+        trunk.push(0.9, start + Vec3::new(0.1, 0.0, 0.0));
+        trunk.push(2.7, start + Vec3::new(0.2, 0.1, 0.0));
+        trunk.set_velocities(&mut rng, 1);
+        let branch = |window: (f32, f32)| {
+            planning_branch(
+                &trunk,
+                ObjectKind::Rope,
+                start,
+                0.0,
+                window,
+                5.0,
+                &mut rng.clone(),
+            )
+        };
+        // The first waypoint after 1.0 s is at 1.2 s.
+        let (m, t) = branch((1.0, 3.8)).unwrap();
+        assert!((t - 1.2).abs() < 1e-6);
+        for k in 0..=12 {
+            let s = k as f32 * 0.1;
+            assert_eq!(m.at(s), trunk.at(s), "t = {s}");
+        }
+        assert!(m.at(3.0).distance(trunk.at(3.0)) > 1e-3);
+        // The first waypoint after 1.5 s (3.9 s) is too late: the last one before 3.8 s.
+        let (_, t) = branch((1.5, 3.8)).unwrap();
+        assert!((t - 1.2).abs() < 1e-6);
+        // Nothing but the start before 0.2 s.
+        assert!(branch((0.1, 0.2)).is_none());
     }
 }

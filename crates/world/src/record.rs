@@ -71,8 +71,9 @@ pub(crate) fn grasp_mode(effects: &Effects, n: usize) -> GraspMode {
 /// With `branches = b > 1` (planning motions only) it returns `b` recordings of the same
 /// object from the same start: the first follows the recording's own gripper path (the trunk),
 /// every other one shares the trunk's path and state up to the trunk's first waypoint after
-/// 40 % of the recording and then takes fresh random moves. They share the tracker's random
-/// draws, so their observations agree exactly before the branch point.
+/// 40 % of the recording (an earlier one when that leaves fewer than two frames) and then
+/// takes fresh random moves. They share the tracker's random draws, so their observations
+/// agree exactly before the branch point.
 pub(crate) fn record(
     scene: &Scene<'_>,
     index: u64,
@@ -147,15 +148,24 @@ pub(crate) fn record(
     let mut shared = frames;
     if branches > 1 {
         let after = BRANCH_AFTER * frames as f32 * STEP_S;
+        // At least two stored steps after the branch point.
+        let before = frames.saturating_sub(2) as f32 * STEP_S;
         for b in 1..branches {
             let mut rng = stream(scene.seed, &[tag::MOTION, index, b as u64]);
-            let (m, t) =
-                planning_branch(&paths[0].0, scene.kind, g0, hang, after, duration, &mut rng)
-                    .ok_or_else(|| {
-                        Error::Config(format!(
-                            "recording {index} is too short to branch ({frames} frames)"
-                        ))
-                    })?;
+            let (m, t) = planning_branch(
+                &paths[0].0,
+                scene.kind,
+                g0,
+                hang,
+                (after, before),
+                duration,
+                &mut rng,
+            )
+            .ok_or_else(|| {
+                Error::Config(format!(
+                    "recording {index} is too short to branch ({frames} frames)"
+                ))
+            })?;
             // Frames up to floor(t / step) are simulated with times <= t, where the paths agree.
             shared = ((t / STEP_S).floor() as usize).min(frames);
             paths.push((m, Some(shared)));
