@@ -16,73 +16,27 @@
 //!
 //! `<run-dir>` as for `rank_fidelity` (`backbone.json`, `residual.safetensors`).
 
-use std::path::Path;
-use std::sync::Arc;
+mod support;
 
 use glam::Vec3;
-use plan::{ForwardModel, ModelState, Pgrd, SpringMass, Task, TaskConfig, TaskKind, WorldOracle};
+use plan::{ForwardModel, WorldOracle};
 
 const GROUPS: usize = 5;
 
-fn main() -> Result<(), Box<dyn std::error::Error>> {
-    let args: Vec<String> = std::env::args().collect();
-    if args.len() < 3 {
-        return Err("usage: part_response <run-dir> <task> [fractions, comma-separated]".into());
-    }
-    let run = Path::new(&args[1]);
-    let kind: TaskKind = args[2].parse()?;
-    let fractions: Vec<f32> = args
-        .get(3)
-        .map_or("0.4,0.6", String::as_str)
-        .split(',')
-        .map(str::parse)
-        .collect::<Result<_, _>>()?;
-    let backbone: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(run.join("backbone.json"))?)?;
-    let params: springs::SpringParams = serde_json::from_value(backbone["params"].clone())?;
-    let effects: Vec<gap::BaseEffect> = match backbone.get("effects") {
-        Some(e) => serde_json::from_value(e.clone())?,
-        None => Vec::new(),
-    };
-    let net = Arc::new(residual::ResidualNet::load(
-        &run.join("residual.safetensors"),
-    )?);
-    let cfg = TaskConfig {
-        tracked: 250,
-        resolution: world::Resolution::Full,
-        ..TaskConfig::new()
-    };
-    let task = Task::build(kind, &cfg)?;
-    let objective = task.objective()?;
-    let rest = task.start.observe();
-    let centre = rest.iter().copied().sum::<Vec3>() / rest.len() as f32;
-    let frame = gap::MaterialFrame::new(&rest, centre)?;
-    let make = || task.backbone_with(params, gap::backbone_options(&effects, &frame));
+fn main() -> Result<(), support::Error> {
+    let (setup, fractions) = support::Setup::from_args("part_response", "0.4,0.6")?;
+    let kind = setup.kind;
+    let objective = setup.task.objective()?;
     let h = kind.mppi().horizon;
-
     for &frac in &fractions {
-        let mut w = task.start.clone();
-        let g0 = w.gripper();
-        let at = g0 + (task.target_gripper - g0) * frac;
-        let n = ((at - g0).length() / 0.03).ceil().max(1.0) as usize;
-        let mut frames = vec![w.observe()];
-        for k in 1..=n {
-            w.step(g0 + (at - g0) * (k as f32 / n as f32))?;
-            frames.push(w.observe());
-        }
-        for _ in 0..3 {
-            w.step(at)?;
-            frames.push(w.observe());
-        }
-        let state = ModelState::from_frames(&frames[frames.len() - 4..], 0.1)?;
-        let left = task.target_gripper - at;
-        let step = left.normalize_or_zero() * (left.length() / h as f32).min(0.02);
+        let (w, state, at) = setup.part_way(frac)?;
+        let step = setup.mean_step(at);
         let path: Vec<Vec<Vec3>> = (0..=h).map(|k| vec![at + step * k as f32]).collect();
         let actions = springs::Actions::new(path, vec![vec![true]; h + 1])?;
         let models: [(&str, Box<dyn ForwardModel>); 3] = [
-            ("world", Box::new(WorldOracle::new(w.clone()))),
-            ("spring-mass", Box::new(SpringMass::new(make()?))),
-            ("pgrd", Box::new(Pgrd::new(make()?, net.clone()))),
+            ("world", Box::new(WorldOracle::new(w))),
+            ("spring-mass", Box::new(setup.spring_mass()?)),
+            ("pgrd", Box::new(setup.pgrd()?)),
         ];
         let x0 = &state.x;
         let mut order: Vec<usize> = (0..x0.len()).collect();
@@ -90,7 +44,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let finals = models
             .iter()
             .map(|(_, m)| Ok(m.rollout(&state, &actions)?.pop().unwrap_or_default()))
-            .collect::<Result<Vec<_>, Box<dyn std::error::Error>>>()?;
+            .collect::<Result<Vec<_>, support::Error>>()?;
         println!(
             "{kind} at {frac:.2} of the way: gripper moves ({:.1}, {:.1}, {:.1}) cm over {h} steps",
             100.0 * step.x * h as f32,

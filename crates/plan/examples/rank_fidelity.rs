@@ -23,53 +23,20 @@
 //! them. World rope at full resolution with 250 observed points, as in
 //! `docs/RESULTS.md`.
 
-use std::path::Path;
-use std::sync::Arc;
+mod support;
 
 use glam::Vec3;
-use plan::{ForwardModel, ModelState, Pgrd, SpringMass, Task, TaskConfig, TaskKind, WorldOracle};
+use plan::{ForwardModel, WorldOracle};
 use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
 
 const CANDIDATES: usize = 48;
 const DRAWS: u64 = 5;
 
-fn main() -> Result<(), Box<dyn std::error::Error>> {
-    let args: Vec<String> = std::env::args().collect();
-    if args.len() < 3 {
-        return Err("usage: rank_fidelity <run-dir> <task> [fractions, comma-separated]".into());
-    }
-    let run = Path::new(&args[1]);
-    let kind: TaskKind = args[2].parse()?;
-    let fractions: Vec<f32> = args
-        .get(3)
-        .map_or("0.4,0.6,0.8,1.0", String::as_str)
-        .split(',')
-        .map(str::parse)
-        .collect::<Result<_, _>>()?;
-    let backbone: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(run.join("backbone.json"))?)?;
-    let params: springs::SpringParams = serde_json::from_value(backbone["params"].clone())?;
-    // Library effects of a diagnosed run (`diagnose --write-run`), placed along the task's start.
-    let effects: Vec<gap::BaseEffect> = match backbone.get("effects") {
-        Some(e) => serde_json::from_value(e.clone())?,
-        None => Vec::new(),
-    };
-    let net = Arc::new(residual::ResidualNet::load(
-        &run.join("residual.safetensors"),
-    )?);
-
-    let cfg = TaskConfig {
-        tracked: 250,
-        resolution: world::Resolution::Full,
-        ..TaskConfig::new()
-    };
-    let task = Task::build(kind, &cfg)?;
+fn main() -> Result<(), support::Error> {
+    let (setup, fractions) = support::Setup::from_args("rank_fidelity", "0.4,0.6,0.8,1.0")?;
+    let (kind, task) = (setup.kind, &setup.task);
     let objective = task.objective()?;
-    let rest = task.start.observe();
-    let centre = rest.iter().copied().sum::<Vec3>() / rest.len() as f32;
-    let frame = gap::MaterialFrame::new(&rest, centre)?;
-    let make = || task.backbone_with(params, gap::backbone_options(&effects, &frame));
     let mppi = kind.mppi();
     let h = mppi.horizon;
     let segment = h.div_ceil(mppi.noise_segments.max(1));
@@ -79,29 +46,13 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
          the network's cost correction vs the needed one: correlation, means (cm)"
     );
     for &frac in &fractions {
-        // The state a planner meets part of the way: the world driven straight towards the
-        // target's gripper position at up to 3 cm per step, then held for three steps.
-        let mut w = task.start.clone();
-        let g0 = w.gripper();
-        let at = g0 + (task.target_gripper - g0) * frac;
-        let n = ((at - g0).length() / 0.03).ceil().max(1.0) as usize;
-        let mut frames = vec![w.observe()];
-        for k in 1..=n {
-            w.step(g0 + (at - g0) * (k as f32 / n as f32))?;
-            frames.push(w.observe());
-        }
-        for _ in 0..3 {
-            w.step(at)?;
-            frames.push(w.observe());
-        }
-        let state = ModelState::from_frames(&frames[frames.len() - 4..], 0.1)?;
+        let (w, state, at) = setup.part_way(frac)?;
         let models: [(&str, Box<dyn ForwardModel>); 2] = [
-            ("spring-mass", Box::new(SpringMass::new(make()?))),
-            ("pgrd", Box::new(Pgrd::new(make()?, net.clone()))),
+            ("spring-mass", Box::new(setup.spring_mass()?)),
+            ("pgrd", Box::new(setup.pgrd()?)),
         ];
         let oracle = WorldOracle::new(w.clone());
-        let left = task.target_gripper - at;
-        let mean = left.normalize_or_zero() * (left.length() / h as f32).min(0.02);
+        let mean = setup.mean_step(at);
         let mut sums = [[0.0f64; 2]; 2];
         // Network's correction vs the needed one: correlation, mean of each (cm).
         let mut correction = [0.0f64; 3];
@@ -123,7 +74,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 }
                 paths.push(path);
             }
-            let costs = |m: &dyn ForwardModel| -> Result<Vec<f64>, Box<dyn std::error::Error>> {
+            let costs = |m: &dyn ForwardModel| -> Result<Vec<f64>, support::Error> {
                 paths
                     .iter()
                     .map(|p| {
@@ -157,7 +108,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             correction[1] += 100.0 * average(&net);
             correction[2] += 100.0 * average(&needed);
         }
-        let now = 100.0 * objective.chamfer(&frames[frames.len() - 1])?;
+        let now = 100.0 * objective.chamfer(&w.observe())?;
         let d = DRAWS as f64;
         let mut line = format!("{frac:4.2}  {now:5.2} cm");
         for ((name, _), [rho, regret]) in models.iter().zip(sums) {
