@@ -68,7 +68,8 @@ pub(crate) fn grasp_mode(effects: &Effects, n: usize) -> GraspMode {
 
 /// Simulates recording `index` for `frames` stored frames.
 ///
-/// With `branches = b > 1` (planning motions only) it returns `b` recordings of the same
+/// With `branches = b > 1` (planning motions of a grasped object, checked by
+/// [`GenConfig::validate`](crate::GenConfig::validate)) it returns `b` recordings of the same
 /// object from the same start: the first follows the recording's own gripper path (the trunk),
 /// every other one shares the trunk's path and state up to the trunk's first waypoint after
 /// 40 % of the recording (an earlier one when that leaves fewer than two frames) and then
@@ -87,11 +88,6 @@ pub(crate) fn record(
     let straight = scene.motion == MotionStyle::Planning && place_rng.random_bool(0.5);
     let (x, g0) = place(scene.kind, bp, straight, &mut place_rng);
     let push = scene.kind.is_push().then_some(PUSH_RADIUS);
-    if branches > 1 && (push.is_some() || scene.motion != MotionStyle::Planning) {
-        return Err(Error::Config(
-            "branched recordings need a grasped object and planning motions".into(),
-        ));
-    }
     let mut sim = Sim::new(bp, scene.effects, x, push);
     let planner = push.map(|radius| PokePlanner {
         radius,
@@ -221,14 +217,13 @@ pub(crate) fn record(
     )?;
     let last = paths.len() - 1;
     for (b, (mut path, branch_frame)) in paths.into_iter().enumerate() {
-        let mut track = trunk.clone();
-        // The last branch may consume the trunk's state; the others simulate a copy.
+        // The last branch takes over the trunk's state and frames; the others work on copies.
         let mut own;
-        let state = if b == last {
-            &mut sim
+        let (state, mut track) = if b == last {
+            (&mut sim, std::mem::take(&mut trunk))
         } else {
             own = sim.clone();
-            &mut own
+            (&mut own, trunk.clone())
         };
         run(
             state,
