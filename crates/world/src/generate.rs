@@ -158,8 +158,8 @@ pub struct RecordingInfo {
 /// One gripper continuation of a branched recording.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct BranchInfo {
-    /// The first frame at which its gripper path may differ from the recording's own; state
-    /// and observations before it are the recording's.
+    /// The branch frame: the last frame it shares with the recording (state, gripper and
+    /// observations are identical up to and including it); the gripper paths part after it.
     pub from_frame: usize,
     /// Dataset indices of its episodes, in time order.
     pub episodes: Vec<usize>,

@@ -50,8 +50,8 @@ pub(crate) struct Recording {
     pub grippers: Vec<Vec3>,
     /// True positions of the scene's `gaussian_particles` `[frames × m]`, m.
     pub fine: Vec<Vec3>,
-    /// The first frame at which this branch's gripper path may differ from the trunk's (the
-    /// trunk itself: `None`).
+    /// The last frame this branch shares with the trunk, whose gripper path it leaves after
+    /// that frame (the trunk itself: `None`).
     pub branch_frame: Option<usize>,
 }
 
