@@ -401,9 +401,7 @@ fn task_backbone(task: &Task, backbone: &BackboneFile) -> anyhow::Result<springs
     if backbone.effects.is_empty() {
         return Ok(task.backbone(backbone.params)?);
     }
-    let rest = task.start.observe();
-    let centre = rest.iter().copied().sum::<Vec3>() / rest.len().max(1) as f32;
-    let frame = gap::MaterialFrame::new(&rest, centre)?;
+    let frame = gap::MaterialFrame::of_shape(&task.start.observe())?;
     let options = gap::backbone_options(&backbone.effects, &frame);
     Ok(task.backbone_with(backbone.params, options)?)
 }

@@ -223,6 +223,13 @@ impl MaterialFrame {
             centre,
         })
     }
+
+    /// From one shape alone, centred on its own mean: the frame of a model that has no
+    /// training data at hand, such as a planning task's rope at its start.
+    pub fn of_shape(shape: &[Vec3]) -> Result<Self, GapError> {
+        let centre = shape.iter().copied().sum::<Vec3>() / shape.len().max(1) as f32;
+        Self::new(shape, centre)
+    }
 }
 
 /// Unit principal axis of a point set (power iteration on the covariance, deterministic start).

@@ -122,6 +122,11 @@ fn material_axis_follows_particle_order() {
     assert!((u[0] + 1.0).abs() < 1e-5 && (u[9] - 1.0).abs() < 1e-5);
     assert!(u.windows(2).all(|w| w[1] > w[0]));
     assert!(MaterialFrame::new(&x[..1], Vec3::ZERO).is_err());
+    // A shape alone: the same coordinate, centred on the shape's mean.
+    let own = MaterialFrame::of_shape(&x).unwrap();
+    assert_eq!(own.coordinate, f.coordinate);
+    assert!((own.centre - Vec3::new(-0.45, 0.0, 0.0)).length() < 1e-6);
+    assert!(MaterialFrame::of_shape(&[]).is_err());
 }
 
 #[test]

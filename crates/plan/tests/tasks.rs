@@ -98,8 +98,7 @@ fn a_backbone_with_effects_predicts_differently_and_default_options_change_nothi
             .unwrap(),
     );
     assert_eq!(plain, default);
-    let centre = rest.iter().copied().sum::<Vec3>() / rest.len() as f32;
-    let frame = gap::MaterialFrame::new(&rest, centre).unwrap();
+    let frame = gap::MaterialFrame::of_shape(&rest).unwrap();
     let effects = gap::BaseEffect::parse_list("bending=0.3").unwrap();
     let bent = predict(
         task.backbone_with(params, gap::backbone_options(&effects, &frame))

@@ -62,9 +62,7 @@ impl Setup {
             ..TaskConfig::new()
         };
         let task = Task::build(kind, &cfg)?;
-        let rest = task.start.observe();
-        let centre = rest.iter().copied().sum::<Vec3>() / rest.len() as f32;
-        let frame = gap::MaterialFrame::new(&rest, centre)?;
+        let frame = gap::MaterialFrame::of_shape(&task.start.observe())?;
         Ok(Setup {
             kind,
             task,
