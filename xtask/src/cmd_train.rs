@@ -136,6 +136,10 @@ pub struct TrainArgs {
     /// Ablation: correct positions instead of velocities.
     #[arg(long)]
     pub position_residual: bool,
+    /// Beyond the paper: also feed each particle the nearest closed gripper's offset and
+    /// velocity (docs/residual.md, "Gripper inputs").
+    #[arg(long)]
+    pub gripper_inputs: bool,
     /// Where training segments start: `guided` (half from a backbone rollout pulled toward
     /// the recorded frames, half as `rollout`), `rollout` (the model's own states along the
     /// evaluation window, refreshed with the hybrid model every --refresh-every steps),
@@ -264,6 +268,7 @@ fn model_config(args: &TrainArgs) -> ModelConfig {
             ResidualKind::Velocity
         },
         residual_scale: args.residual_scale,
+        gripper_inputs: args.gripper_inputs,
         ..ModelConfig::default()
     }
 }

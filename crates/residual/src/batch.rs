@@ -8,7 +8,7 @@ use glam::Vec3;
 use rayon::prelude::*;
 use springs::{Actions, Backbone, Scratch, SimError, State};
 
-use crate::model::{INPUTS, ResidualNet};
+use crate::model::{GRIPPER_INPUTS, INPUTS, ResidualNet, gripper_inputs};
 use crate::nn::Pass;
 use crate::rollout::{DIVERGED_M, History};
 use crate::serialize::{Layout, Structure};
@@ -122,7 +122,7 @@ fn run_group<'a>(net: &ResidualNet, mut live: Vec<Live<'a>>) -> Result<Vec<(usiz
         let st = Structure::batch(&layouts, cfg.patch, dev)?;
         let rows: usize = live.iter().map(|l| l.n).sum();
         let feats: Vec<f32> = live.iter().flat_map(|l| l.feats.iter().copied()).collect();
-        let feats = Tensor::from_vec(feats, (rows, INPUTS), dev)?;
+        let feats = Tensor::from_vec(feats, (rows, cfg.input_dim()), dev)?;
         let centred: Vec<f32> = live
             .iter()
             .flat_map(|l| l.centred.iter().flat_map(|p| p.to_array()))
@@ -304,6 +304,10 @@ impl<'a> Live<'a> {
         self.centred.clear();
         self.centred.extend(self.x.iter().map(|p| *p - self.centre));
         self.feats.clear();
+        let mut gripper = Vec::new();
+        if cfg.gripper_inputs {
+            gripper_inputs(&self.x, from, to, dt, cfg.velocity_scale, &mut gripper);
+        }
         for i in 0..self.n {
             let x = self.x[i];
             for f in [
@@ -317,6 +321,10 @@ impl<'a> Live<'a> {
                 self.sim.v[i] * vs,
             ] {
                 self.feats.extend(f.to_array());
+            }
+            if cfg.gripper_inputs {
+                self.feats
+                    .extend_from_slice(&gripper[i * GRIPPER_INPUTS..(i + 1) * GRIPPER_INPUTS]);
             }
         }
         self.layout = Some(Layout::new(

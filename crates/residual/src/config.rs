@@ -86,6 +86,12 @@ pub struct ModelConfig {
     /// which this version refuses (its weights would be fed the wrong inputs).
     #[serde(default)]
     pub inputs: InputConvention,
+    /// Also feed every particle the nearest closed gripper's offset from it (m) and velocity
+    /// (times `velocity_scale`): [`GRIPPER_INPUTS`](crate::GRIPPER_INPUTS) more channels. Off
+    /// in the paper (the gripper enters only through the held particles) and in configurations
+    /// saved before the option existed.
+    #[serde(default)]
+    pub gripper_inputs: bool,
 }
 
 /// How the earlier and predicted positions are presented to the network.
@@ -123,6 +129,7 @@ impl Default for ModelConfig {
             residual: ResidualKind::Velocity,
             velocity_scale: 2.0,
             inputs: InputConvention::Displacement,
+            gripper_inputs: false,
         }
     }
 }
@@ -142,6 +149,17 @@ impl ModelConfig {
             temporal_ff: 32,
             ..ModelConfig::default()
         }
+    }
+
+    /// Input channels per particle: [`INPUTS`](crate::INPUTS), plus
+    /// [`GRIPPER_INPUTS`](crate::GRIPPER_INPUTS) with `gripper_inputs`.
+    pub fn input_dim(&self) -> usize {
+        crate::INPUTS
+            + if self.gripper_inputs {
+                crate::GRIPPER_INPUTS
+            } else {
+                0
+            }
     }
 
     /// Width of the per-particle feature the encoder produces.
@@ -203,6 +221,9 @@ impl ModelConfig {
         }
         if self.residual == ResidualKind::Position {
             parts.push("position-residual");
+        }
+        if self.gripper_inputs {
+            parts.push("gripper-inputs");
         }
         if parts.is_empty() {
             "full".into()

@@ -17,6 +17,48 @@ use crate::{Combine, ModelConfig, ResidualError, Result};
 /// Input channels per particle: x, v, x(t−1), x(t−2), v(t−1), v(t−2), x_sim, v_sim.
 pub const INPUTS: usize = 24;
 
+/// Extra channels with [`ModelConfig::gripper_inputs`]: the nearest closed gripper's offset
+/// from the particle and its velocity ([`gripper_inputs`]).
+pub const GRIPPER_INPUTS: usize = 6;
+
+/// Per particle at `x` (m): the offset (m) to the nearest gripper closed in `from`, and that
+/// gripper's velocity from `from` to `to` (m/s, times `velocity_scale`), as 6 values appended
+/// to `out`; zeros where no gripper is closed. The network otherwise learns of the action only
+/// through the held particles, and has to carry it along the object itself.
+pub(crate) fn gripper_inputs(
+    x: &[Vec3],
+    from: springs::ActionFrame<'_>,
+    to: springs::ActionFrame<'_>,
+    dt: f32,
+    velocity_scale: f32,
+    out: &mut Vec<f32>,
+) {
+    let closed: Vec<usize> = (0..from.positions.len())
+        .filter(|&g| from.closed.get(g).copied().unwrap_or(false))
+        .collect();
+    for p in x {
+        let nearest = closed.iter().copied().min_by(|&a, &b| {
+            let (da, db) = (
+                from.positions[a].distance_squared(*p),
+                from.positions[b].distance_squared(*p),
+            );
+            da.total_cmp(&db)
+        });
+        let (offset, velocity) = match nearest {
+            Some(g) => {
+                let end = to.positions.get(g).copied().unwrap_or(from.positions[g]);
+                (
+                    from.positions[g] - *p,
+                    (end - from.positions[g]) * (velocity_scale / dt),
+                )
+            }
+            None => (Vec3::ZERO, Vec3::ZERO),
+        };
+        out.extend(offset.to_array());
+        out.extend(velocity.to_array());
+    }
+}
+
 /// Hidden widths of the decoder MLP (the reference's 64 → 64 → 32 → 3).
 const HEAD: [usize; 3] = [64, 64, 32];
 
@@ -94,7 +136,7 @@ impl ResidualNet {
         let device = Device::Cpu;
         let varmap = VarMap::new();
         let vb = VarBuilder::from_varmap(&varmap, DType::F32, &device);
-        let encoder = Encoder::new(INPUTS, cfg, vb.pp("encoder"))?;
+        let encoder = Encoder::new(cfg.input_dim(), cfg, vb.pp("encoder"))?;
         let f = cfg.feature_dim();
         let head = if cfg.decoder {
             let fourier = 3 + 6 * cfg.fourier_bands;
@@ -239,11 +281,11 @@ impl ResidualNet {
         Ok(net)
     }
 
-    /// One-shot residual (m/s, `(N, 3)`) for features `(N, INPUTS)` at centred positions
+    /// One-shot residual (m/s, `(N, 3)`) for features `(N, input_dim)` at centred positions
     /// `pos` (m), with an empty temporal window (as at a rollout's first step) and the curves
     /// in their default order.
     pub fn predict(&self, feats: &Tensor, pos: &[Vec3]) -> Result<Tensor> {
-        if feats.dims() != [pos.len(), INPUTS] {
+        if feats.dims() != [pos.len(), self.cfg.input_dim()] {
             return Err(ResidualError::Input(format!(
                 "features {:?} for {} positions",
                 feats.dims(),
@@ -265,7 +307,7 @@ impl ResidualNet {
         self.aggregate(&[r], Pass::Grad)
     }
 
-    /// Decoder output `r ∈ (−1, 1)^3` per particle from the `(N, INPUTS)` features and the
+    /// Decoder output `r ∈ (−1, 1)^3` per particle from the `(N, input_dim)` features and the
     /// centred positions `(N, 3)`.
     pub(crate) fn decode(
         &self,
@@ -415,5 +457,65 @@ impl ResidualNet {
             }
             None => Ok(((r + delta)? * (s / 2.0))?),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use glam::Vec3;
+    use springs::ActionFrame;
+
+    use super::gripper_inputs;
+
+    #[test]
+    fn gripper_inputs_use_the_nearest_closed_gripper() {
+        let from = [Vec3::new(0.0, 0.0, 0.1), Vec3::new(1.0, 0.0, 0.1)];
+        let to = [Vec3::new(0.0, 0.03, 0.1), Vec3::new(1.0, 0.0, 0.4)];
+        let x = [Vec3::new(0.9, 0.0, 0.0), Vec3::new(0.2, 0.0, 0.0)];
+        let frame = |p, c| ActionFrame {
+            positions: p,
+            closed: c,
+        };
+        let mut out = Vec::new();
+        // Only the first gripper is closed: both particles see it, even the one nearer the
+        // open second gripper. dt 0.1 s, velocity scale 2: 0.03 m / 0.1 s × 2 = 0.6.
+        gripper_inputs(
+            &x,
+            frame(&from, &[true, false]),
+            frame(&to, &[true, false]),
+            0.1,
+            2.0,
+            &mut out,
+        );
+        let want = [-0.9, 0.0, 0.1, 0.0, 0.6, 0.0, -0.2, 0.0, 0.1, 0.0, 0.6, 0.0];
+        for (a, b) in out.iter().zip(want) {
+            assert!((a - b).abs() < 1e-5, "{out:?}");
+        }
+        // Both closed: each particle sees its nearest.
+        out.clear();
+        gripper_inputs(
+            &x,
+            frame(&from, &[true, true]),
+            frame(&to, &[true, true]),
+            0.1,
+            2.0,
+            &mut out,
+        );
+        assert!(
+            (out[0] - 0.1).abs() < 1e-5 && (out[5] - 6.0).abs() < 1e-4,
+            "{out:?}"
+        );
+        // None closed (or no gripper at all): zeros.
+        out.clear();
+        gripper_inputs(
+            &x,
+            frame(&from, &[false, false]),
+            frame(&to, &[false, false]),
+            0.1,
+            2.0,
+            &mut out,
+        );
+        gripper_inputs(&x, frame(&[], &[]), frame(&[], &[]), 0.1, 2.0, &mut out);
+        assert_eq!(out, vec![0.0; 24]);
     }
 }

@@ -10,7 +10,7 @@ use serde::{Deserialize, Serialize};
 use springs::{Actions, Backbone, SimError, State};
 
 use crate::loss::{TrainLoss, step_loss};
-use crate::model::{INPUTS, ResidualNet};
+use crate::model::{GRIPPER_INPUTS, ResidualNet, gripper_inputs};
 use crate::nn::Pass;
 use crate::serialize::{CURVES, Structure};
 use crate::{ResidualError, ResidualKind, Result};
@@ -347,20 +347,23 @@ fn run(
         // the network must find are centimetres, which absolute coordinates (tens of
         // centimetres) would bury.
         let ds = vs / f64::from(dt);
-        let feats = Tensor::cat(
-            &[
-                &pos,
-                &(&v * vs)?,
-                &((&hx[0] - &x)? * ds)?,
-                &((&hx[1] - &x)? * (ds / 2.0))?,
-                &(&hv[0] * vs)?,
-                &(&hv[1] * vs)?,
-                &((&x_sim - &x)? * ds)?,
-                &(&v_sim * vs)?,
-            ],
-            1,
-        )?;
-        debug_assert_eq!(feats.dim(1)?, INPUTS);
+        let mut parts = vec![
+            pos.clone(),
+            (&v * vs)?,
+            ((&hx[0] - &x)? * ds)?,
+            ((&hx[1] - &x)? * (ds / 2.0))?,
+            (&hv[0] * vs)?,
+            (&hv[1] * vs)?,
+            ((&x_sim - &x)? * ds)?,
+            (&v_sim * vs)?,
+        ];
+        if cfg.gripper_inputs {
+            let mut g = Vec::with_capacity(n * GRIPPER_INPUTS);
+            gripper_inputs(&current, from, to, dt, cfg.velocity_scale, &mut g);
+            parts.push(Tensor::from_vec(g, (n, GRIPPER_INPUTS), &dev)?);
+        }
+        let feats = Tensor::cat(&parts, 1)?;
+        debug_assert_eq!(feats.dim(1)?, cfg.input_dim());
         let centred: Vec<Vec3> = current.iter().map(|p| *p - centre).collect();
         let st = Structure::new(
             &centred,

@@ -116,7 +116,11 @@ fn a_batch_predicts_what_each_rollout_predicts_alone() {
     let b = case("rope", 1, Vec3::new(0.003, -0.002, 0.001));
     let c = chain(97, Vec3::new(0.0, 0.01, 0.02));
     assert_ne!(a.init.x.len(), c.init.x.len(), "point counts should differ");
-    for cfg in [ModelConfig::tiny(), ModelConfig::default()] {
+    let gripper = ModelConfig {
+        gripper_inputs: true,
+        ..ModelConfig::tiny()
+    };
+    for cfg in [ModelConfig::tiny(), ModelConfig::default(), gripper] {
         let net = ResidualNet::new(&cfg, 4).unwrap();
         assert_batch_matches(&net, &[&a], &[5]);
         // Different clouds, point counts, actions and lengths (the short one leaves early).

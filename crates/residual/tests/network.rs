@@ -59,6 +59,10 @@ fn every_parameter_gets_a_gradient_in_the_ablations() {
     grads_reach_every_parameter(&ModelConfig {
         combine: Combine::Add,
         residual: ResidualKind::Position,
+        ..t.clone()
+    });
+    grads_reach_every_parameter(&ModelConfig {
+        gripper_inputs: true,
         ..t
     });
 }
