@@ -18,7 +18,7 @@ use crate::{Combine, ModelConfig, ResidualError, Result};
 pub const INPUTS: usize = 24;
 
 /// Extra channels with [`ModelConfig::gripper_inputs`]: the nearest closed gripper's offset
-/// from the particle and its velocity ([`gripper_inputs`]).
+/// from the particle and its velocity (see `docs/residual.md`, Normalisation).
 pub const GRIPPER_INPUTS: usize = 6;
 
 /// Per particle at `x` (m): the offset (m) to the nearest gripper closed in `from`, and that
