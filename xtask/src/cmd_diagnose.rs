@@ -54,7 +54,9 @@ pub struct DiagnoseArgs {
     /// Window of each episode.
     #[arg(long, value_enum, default_value_t = ProtocolArg::Paper)]
     pub protocol: ProtocolArg,
-    /// Comma-separated candidate effects (default: all nine).
+    /// Comma-separated candidate effects (default: the nine library effects). Names starting
+    /// with `+` are added to the nine instead, e.g. `+gravity-scale` (an extra candidate,
+    /// offered on request only; `docs/gap.md`).
     #[arg(long)]
     pub candidates: Option<String>,
     /// Effects already in the model, refitted with the backbone in the control and in every
@@ -86,12 +88,30 @@ pub struct DiagnoseArgs {
     pub quiet: bool,
 }
 
+/// `a,b` names the candidates; `+a,+b` adds them to the nine library effects.
+fn parse_candidates(list: &str) -> anyhow::Result<Vec<Candidate>> {
+    let names: Vec<&str> = list.split(',').map(str::trim).collect();
+    let adding = names.iter().filter(|n| n.starts_with('+')).count();
+    if adding != 0 && adding != names.len() {
+        anyhow::bail!("--candidates: either name every candidate or add with '+' to all, not both");
+    }
+    let mut out = if adding > 0 {
+        Candidate::LIBRARY.to_vec()
+    } else {
+        Vec::new()
+    };
+    for name in names {
+        let c = Candidate::parse(name.trim_start_matches('+'))?;
+        if !out.contains(&c) {
+            out.push(c);
+        }
+    }
+    Ok(out)
+}
+
 fn config_from(args: &DiagnoseArgs, run_effects: &[BaseEffect]) -> anyhow::Result<DiagnoseConfig> {
     let candidates = match &args.candidates {
-        Some(list) => list
-            .split(',')
-            .map(|s| Candidate::parse(s.trim()))
-            .collect::<Result<Vec<_>, _>>()?,
+        Some(list) => parse_candidates(list)?,
         None => Candidate::LIBRARY.to_vec(),
     };
     Ok(DiagnoseConfig {
@@ -288,4 +308,25 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
         );
     }
     Ok(d)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn candidates_are_named_or_added_to_the_library() {
+        let named = parse_candidates("drag, bending").unwrap();
+        assert_eq!(named, vec![Candidate::Drag, Candidate::Bending]);
+        let added = parse_candidates("+gravity-scale").unwrap();
+        assert_eq!(added.len(), Candidate::LIBRARY.len() + 1);
+        assert_eq!(added.last(), Some(&Candidate::GravityScale));
+        // Adding one already there changes nothing.
+        assert_eq!(
+            parse_candidates("+drag").unwrap(),
+            Candidate::LIBRARY.to_vec()
+        );
+        assert!(parse_candidates("drag,+bending").is_err());
+        assert!(parse_candidates("+gravity").is_err());
+    }
 }

@@ -12,11 +12,12 @@ use springs::{BackboneOptions, Effect, SpringParams};
 use crate::GapError;
 use crate::base::{BaseEffect, check_distinct};
 use crate::forces::{
-    ActuationLag, BendingSprings, ExternalField, MassGradient, PlasticCreep, QuadraticDrag,
-    SlippingGrasp, StickSlipFriction, StiffnessGradient, StrainStiffening,
+    ActuationLag, BendingSprings, ExternalField, GravityScale, MassGradient, PlasticCreep,
+    QuadraticDrag, SlippingGrasp, StickSlipFriction, StiffnessGradient, StrainStiffening,
 };
 
-/// A candidate unmodelled effect (the nine library effects), or the generic probe.
+/// A candidate unmodelled effect (the nine library effects and the extras), or the generic
+/// probe.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Candidate {
@@ -38,6 +39,9 @@ pub enum Candidate {
     GraspSlip,
     /// Mass varying along the principal axis.
     MassDistribution,
+    /// Beyond the library, offered on request ([`Candidate::EXTRA`]): gravity scaled by a
+    /// factor, which also stands for a recording clock off its nominal rate.
+    GravityScale,
     /// Not in the library: a generic external acceleration field (the `unknown` probe).
     ExternalField,
 }
@@ -56,6 +60,11 @@ impl Candidate {
         Candidate::MassDistribution,
     ];
 
+    /// Candidates beyond the nine, offered on request only (`--candidates`): the reference
+    /// world cannot switch them on, so the bench cannot check them, and they stay out of the
+    /// default list.
+    pub const EXTRA: [Candidate; 1] = [Candidate::GravityScale];
+
     /// The effect's name, as used by the reference world and in reports.
     pub fn name(self) -> &'static str {
         match self {
@@ -68,6 +77,7 @@ impl Candidate {
             Candidate::ActuationDelay => "actuation-delay",
             Candidate::GraspSlip => "grasp-slip",
             Candidate::MassDistribution => "mass-distribution",
+            Candidate::GravityScale => "gravity-scale",
             Candidate::ExternalField => "external-field",
         }
     }
@@ -76,6 +86,7 @@ impl Candidate {
     pub fn parse(name: &str) -> Result<Candidate, GapError> {
         Candidate::LIBRARY
             .into_iter()
+            .chain(Candidate::EXTRA)
             .chain([Candidate::ExternalField])
             .find(|c| c.name() == name)
             .ok_or_else(|| GapError::Config(format!("unknown candidate effect '{name}'")))
@@ -105,6 +116,7 @@ impl Candidate {
                 Parameter::log("slip_force_n", 0.1, 1000.0),
             ],
             Candidate::MassDistribution => vec![Parameter::linear("log_mass_slope", -2.0, 2.0)],
+            Candidate::GravityScale => vec![Parameter::linear("gravity_factor", 0.5, 4.0)],
             Candidate::ExternalField => vec![
                 Parameter::linear("field_x_m_per_s2", -3.0, 3.0),
                 Parameter::linear("field_y_m_per_s2", -3.0, 3.0),
@@ -126,6 +138,7 @@ impl Candidate {
             Candidate::ActuationDelay => vec![1.0],
             Candidate::GraspSlip => vec![1000.0, 20.0],
             Candidate::MassDistribution => vec![0.5],
+            Candidate::GravityScale => vec![1.2],
             Candidate::ExternalField => vec![0.5, 0.5, 0.5, -2.0],
         }
     }
@@ -138,6 +151,7 @@ impl Candidate {
             Candidate::StiffnessHeterogeneity | Candidate::MassDistribution => vec![0.0],
             Candidate::NonlinearElasticity => vec![0.0, 0.0],
             Candidate::Friction | Candidate::ActuationDelay => vec![0.0],
+            Candidate::GravityScale => vec![1.0],
             Candidate::Plasticity => vec![0.02, 0.0],
             Candidate::GraspSlip => vec![1e6, 1e9],
             Candidate::ExternalField => vec![0.0; 4],
@@ -174,6 +188,7 @@ impl Candidate {
                 slope: f(0),
                 material: frame.coordinate.clone(),
             }),
+            Candidate::GravityScale => Box::new(GravityScale { factor: f(0) }),
             Candidate::ExternalField => Box::new(ExternalField {
                 uniform: Vec3::new(f(0), f(1), f(2)),
                 gradient: f(3),

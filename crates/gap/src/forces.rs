@@ -568,3 +568,36 @@ impl Effect for ExternalField {
         }
     }
 }
+
+/// Beyond the nine effects: gravity scaled by a factor `s`, i.e. an extra force
+/// `(s − 1) m g` on every particle. With stiffness and damping refitted alongside, a model
+/// whose gravity is `s g` moves like one whose clock runs `√s` times faster, so this also
+/// stands for a recording whose true frame interval differs from its nominal one (the
+/// initial velocities, taken from the first two frames, are the one thing it does not scale).
+/// DEFORM's rod model carries a learned integration ratio for the same reason.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GravityScale {
+    /// Factor on the model's gravity (1: unchanged).
+    pub factor: f32,
+}
+
+impl Effect for GravityScale {
+    fn name(&self) -> &str {
+        "gravity-scale"
+    }
+    fn setup(&mut self, _model: &mut ModelSetup<'_>) -> Result<(), SimError> {
+        check_finite("gravity-scale", &[("factor", self.factor)])
+    }
+    fn add_forces(
+        &self,
+        ctx: &SubstepContext<'_>,
+        _s: &mut dyn Any,
+        _r: &[f32],
+        force: &mut [Vec3A],
+    ) {
+        let extra = Vec3A::from(ctx.backbone.config().gravity) * (self.factor - 1.0);
+        for (f, m) in force.iter_mut().zip(ctx.backbone.masses()) {
+            *f += extra * *m;
+        }
+    }
+}

@@ -7,7 +7,8 @@
 //!   `nonlinear-elasticity`, `bending`, `friction`, `plasticity`, `actuation-delay`,
 //!   `grasp-slip`, `mass-distribution`), each a [`springs::Effect`] with one or two
 //!   parameters ([`forces`]), plus a generic external-field probe used to detect gaps no named
-//!   effect explains.
+//!   effect explains. [`Candidate::EXTRA`] holds candidates offered only on request
+//!   (`gravity-scale`, for recordings whose gravity or clock the backbone gets wrong).
 //! - [`diagnose`] refits the backbone alone (the control) and the backbone with each candidate on
 //!   the training scenes with the same small CMA-ES budget, scores all on held-out scenes,
 //!   bootstraps the shrinkage over episodes ([`paired_shrinkage`]) and applies the verdict

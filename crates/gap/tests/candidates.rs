@@ -83,6 +83,7 @@ fn every_candidate_changes_the_rollout_and_vanishes_at_neutral() {
     let plain = roll(None);
     for c in Candidate::LIBRARY
         .into_iter()
+        .chain(Candidate::EXTRA)
         .chain([Candidate::ExternalField])
     {
         let on = roll(Some((c, c.start())));
@@ -147,6 +148,50 @@ fn bad_effect_parameters_are_errors_not_panics() {
             Backbone::with_options(&x, &held, params(), SimConfig::default(), opts).is_err(),
             "{}",
             c.name()
+        );
+    }
+}
+
+/// `gravity-scale` at factor s makes a lone free particle (no springs, no ground) fall with
+/// acceleration s g: after t seconds from rest it has dropped ½ s g t².
+#[test]
+fn gravity_scale_multiplies_free_fall() {
+    let x = vec![Vec3::new(0.0, 0.0, 1.0), Vec3::new(5.0, 0.0, 1.0)];
+    // Particle 0 is held (and never moves); particle 1 is 5 m away, beyond any spring.
+    let held = vec![0, -1];
+    let steps = 10;
+    let actions = Actions::new(vec![vec![x[0]]; steps + 1], vec![vec![true]; steps + 1]).unwrap();
+    let config = SimConfig {
+        ground_z: None,
+        ..SimConfig::default()
+    };
+    let g = -config.gravity.z;
+    let t = config.step_dt * steps as f32;
+    let f = frame(&x);
+    for s in [1.0f32, 1.5] {
+        let bb = Backbone::with_options(
+            &x,
+            &held,
+            params(),
+            config,
+            BackboneOptions {
+                masses: None,
+                effects: vec![Candidate::GravityScale.effect(&[f64::from(s)], &f)],
+            },
+        )
+        .unwrap();
+        let state = State {
+            x: x.clone(),
+            v: vec![Vec3::ZERO; 2],
+        };
+        // Entry 0 of a rollout is the initial state, so the last entry is `steps` steps later.
+        let end = bb.rollout(&state, &actions).unwrap().positions[steps][1];
+        let drop = 1.0 - end.z;
+        let expected = 0.5 * s * g * t * t;
+        // Semi-implicit Euler over many substeps: within 2 % of the exact drop.
+        assert!(
+            (drop - expected).abs() < 0.02 * expected,
+            "factor {s}: dropped {drop} m, expected {expected} m"
         );
     }
 }
