@@ -7,6 +7,16 @@ use glam::Vec3;
 use crate::candidates::principal_axis;
 use crate::diagnose::Diagnosis;
 
+/// A mean error in cm, or a dash where a bin has no samples (the mean is NaN then, e.g. the
+/// ground-contact phase of a cable that never touches the ground).
+fn cm_or_dash(v: f64) -> String {
+    if v.is_finite() {
+        format!("{v:.3}")
+    } else {
+        "–".to_string()
+    }
+}
+
 fn esc(s: &str) -> String {
     s.replace('&', "&amp;")
         .replace('<', "&lt;")
@@ -370,7 +380,7 @@ pub fn render_html(d: &Diagnosis, title: &str) -> String {
             vec![
                 b.label.clone(),
                 format!("[{:+.2}, {:+.2}]", b.range[0], b.range[1]),
-                format!("{:.3}", b.mean_error_cm),
+                cm_or_dash(b.mean_error_cm),
             ]
         }),
     );
@@ -385,7 +395,7 @@ pub fn render_html(d: &Diagnosis, title: &str) -> String {
             vec![
                 b.label.clone(),
                 format!("{:.1}%", 100.0 * b.share),
-                format!("{:.3}", b.mean_error_cm),
+                cm_or_dash(b.mean_error_cm),
             ]
         }),
     );
@@ -403,7 +413,7 @@ pub fn render_html(d: &Diagnosis, title: &str) -> String {
                 vec![
                     b.label.clone(),
                     format!("[{:.3}, {:.3}]", b.range[0], b.range[1]),
-                    format!("{:.3}", b.mean_error_cm),
+                    cm_or_dash(b.mean_error_cm),
                 ]
             }),
         );
@@ -413,4 +423,15 @@ pub fn render_html(d: &Diagnosis, title: &str) -> String {
         esc(title),
         body
     )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::cm_or_dash;
+
+    #[test]
+    fn empty_bins_show_a_dash_not_nan() {
+        assert_eq!(cm_or_dash(f64::NAN), "–");
+        assert_eq!(cm_or_dash(1.23456), "1.235");
+    }
 }
