@@ -126,6 +126,18 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
         backbone.label()
     };
     let options = backbone.options_for(&data, protocol)?;
+    if let Some((_, scene)) = scenes.first() {
+        let bb = scene.backbone(&backbone.params, &scene.sim_config(), options())?;
+        let loose = bb.unconnected_free_particles();
+        if loose > 0 {
+            eprintln!(
+                "warning: {loose} of {} free particles have no spring (threshold {} m is below \
+                 their spacing?); they fall freely",
+                bb.held().iter().filter(|h| **h < 0).count(),
+                backbone.params.threshold
+            );
+        }
+    }
     let histories = match &net {
         Some(_) => scenes
             .iter()

@@ -389,6 +389,20 @@ impl Backbone {
     pub fn springs(&self) -> &[[u32; 2]] {
         &self.springs
     }
+    /// Free (not held) particles that no spring connects to anything: they fall freely, which
+    /// is almost always a threshold below the particle spacing rather than what a user meant.
+    pub fn unconnected_free_particles(&self) -> usize {
+        let mut connected = vec![false; self.num_particles()];
+        for [a, b] in &self.springs {
+            connected[*a as usize] = true;
+            connected[*b as usize] = true;
+        }
+        connected
+            .iter()
+            .zip(&self.held)
+            .filter(|(c, h)| !**c && **h < 0)
+            .count()
+    }
     /// Initial rest length per spring, m.
     pub fn rest_lengths(&self) -> &[f32] {
         &self.rest_lengths

@@ -129,3 +129,33 @@ fn bad_input() {
     );
     assert!(Topology::build(&[], 0.1, 4).unwrap().is_empty());
 }
+
+#[test]
+fn unconnected_free_particles_are_counted() {
+    use springs::{Backbone, SimConfig, SpringParams};
+    // Points 1 cm apart, then one 10 cm away (free) and one 20 cm away (held).
+    let mut x: Vec<Vec3> = (0..4)
+        .map(|i| Vec3::new(0.01 * i as f32, 0.0, 0.5))
+        .collect();
+    x.push(Vec3::new(0.13, 0.0, 0.5));
+    x.push(Vec3::new(0.33, 0.0, 0.5));
+    let held = vec![0, -1, -1, -1, -1, 0];
+    let params = |threshold| SpringParams {
+        stiffness: 1000.0,
+        damping: 1.0,
+        threshold,
+        max_springs: 10,
+        ground_friction: 0.5,
+    };
+    let count = |threshold| {
+        Backbone::new(&x, &held, params(threshold), SimConfig::default())
+            .unwrap()
+            .unconnected_free_particles()
+    };
+    // 1.5 cm links the first four; the lone free point is counted, the lone held one is not.
+    assert_eq!(count(0.015), 1);
+    // Below the spacing nothing is linked: three free points of the chain plus the lone one.
+    assert_eq!(count(0.005), 4);
+    // 15 cm reaches the lone free point too.
+    assert_eq!(count(0.15), 0);
+}
