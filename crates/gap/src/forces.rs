@@ -574,7 +574,7 @@ impl Effect for ExternalField {
 /// whose gravity is `s g` moves like one whose clock runs `√s` times faster, so this also
 /// stands for a recording whose true frame interval differs from its nominal one (the
 /// initial velocities, taken from the first two frames, are the one thing it does not scale).
-/// DEFORM's rod model carries a learned integration ratio for the same reason.
+/// DEFORM's rod model carries a learnable integration ratio, a time-scale factor of this kind.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct GravityScale {
     /// Factor on the model's gravity (1: unchanged).
