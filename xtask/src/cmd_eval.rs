@@ -10,7 +10,9 @@ use rayon::prelude::*;
 use scene::{Protocol, SceneConfig, StepErrors};
 use serde::Serialize;
 
-use crate::common::{ProtocolArg, load_scenes, predict_tracked, read_backbone, read_residual};
+use crate::common::{
+    ProtocolArg, load_scenes, predict_tracked, read_backbone, read_residual, warn_if_unconnected,
+};
 use crate::report::{Curve, plot_curves, write_json};
 
 /// Arguments of `eval`.
@@ -127,16 +129,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
     };
     let options = backbone.options_for(&data, protocol)?;
     if let Some((_, scene)) = scenes.first() {
-        let bb = scene.backbone(&backbone.params, &scene.sim_config(), options())?;
-        let loose = bb.unconnected_free_particles();
-        if loose > 0 {
-            eprintln!(
-                "warning: {loose} of {} free particles have no spring (threshold {} m is below \
-                 their spacing?); they fall freely",
-                bb.held().iter().filter(|h| **h < 0).count(),
-                backbone.params.threshold
-            );
-        }
+        warn_if_unconnected(scene, &backbone.params, options())?;
     }
     let histories = match &net {
         Some(_) => scenes

@@ -9,7 +9,7 @@ use fit::{BackboneFamily, FitConfig};
 use indicatif::{ProgressBar, ProgressStyle};
 use scene::SceneConfig;
 
-use crate::common::{BackboneFile, ProtocolArg, backbone_path, load_scenes};
+use crate::common::{BackboneFile, ProtocolArg, backbone_path, load_scenes, warn_if_unconnected};
 use crate::report::write_json;
 
 /// Arguments of `fit`.
@@ -138,6 +138,9 @@ pub fn run(args: &FitArgs) -> anyhow::Result<BackboneFile> {
         );
     }
     let params = BackboneFamily::params(&outcome.best);
+    if let Some(scene) = scenes.first() {
+        warn_if_unconnected(scene, &params, Default::default())?;
+    }
     let generations_wall: f64 = outcome.history.iter().map(|g| g.wall_s).sum();
     let file = BackboneFile {
         model: "spring-mass".into(),

@@ -109,6 +109,26 @@ impl BackboneFile {
     }
 }
 
+/// Prints a warning when free particles of `scene`'s backbone have no spring: they fall
+/// freely, almost always because the threshold is below the particle spacing.
+pub fn warn_if_unconnected(
+    scene: &Scene,
+    params: &springs::SpringParams,
+    options: springs::BackboneOptions,
+) -> anyhow::Result<()> {
+    let bb = scene.backbone(params, &scene.sim_config(), options)?;
+    let loose = bb.unconnected_free_particles();
+    if loose > 0 {
+        eprintln!(
+            "warning: {loose} of {} free particles have no spring (threshold {} m is below \
+             their spacing?); they fall freely",
+            bb.held().iter().filter(|h| **h < 0).count(),
+            params.threshold
+        );
+    }
+    Ok(())
+}
+
 /// Path of the backbone file in a run directory.
 pub fn backbone_path(run: &Path) -> PathBuf {
     run.join("backbone.json")
