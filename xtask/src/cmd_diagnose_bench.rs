@@ -41,6 +41,10 @@ pub enum CasePlan {
     All,
     /// Each effect only on objects whose motions excite it ([`relevant_cases`]).
     Relevant,
+    /// Each effect only on objects the world visibly moves with it: where its displacement
+    /// ([`world::effect_displacement_m`], measured before any fit) at the ladder's top scale
+    /// is at least `--min-displacement-cm`.
+    Visible,
 }
 
 /// The effects (world names, `magnet` included) each object's recorded motions expose it to,
@@ -154,6 +158,10 @@ pub struct DiagnoseBenchArgs {
     /// its no-effect training MDE.
     #[arg(long, default_value_t = 0.5)]
     pub target_raise: f64,
+    /// `--plan visible`: least world-level displacement, cm, an effect must cause at the
+    /// ladder's top scale to be tried on an object.
+    #[arg(long, default_value_t = 1.0)]
+    pub min_displacement_cm: f64,
     /// Gripper motions of every generated dataset (`everyday` or `probing`; see `gen`).
     #[arg(long, default_value_t = world::MotionStyle::Everyday)]
     pub motion: world::MotionStyle,
@@ -217,6 +225,9 @@ pub struct Rung {
     /// Training MDE of the control refit on the effect data minus that on the no-effect data,
     /// cm.
     pub raise_cm: f64,
+    /// How far the effect at this scale moves the object in the world, before any fit
+    /// ([`world::effect_displacement_m`], on the held-out episodes' count of recordings), cm.
+    pub displacement_cm: f64,
 }
 
 /// One bench case.
@@ -265,6 +276,19 @@ pub struct BenchCase {
     pub tie_break: Option<gap::TieBreak>,
 }
 
+/// A case `--plan visible` left out: the effect hardly moves the object.
+#[derive(Serialize, Clone, Debug)]
+pub struct SkippedCase {
+    /// Object.
+    pub object: String,
+    /// The effect.
+    pub truth: String,
+    /// The ladder's top scale.
+    pub scale: f32,
+    /// Its world-level displacement at that scale, cm.
+    pub displacement_cm: f64,
+}
+
 /// Bench summary.
 #[derive(Serialize, Debug)]
 pub struct BenchSummary {
@@ -295,53 +319,10 @@ pub struct BenchSummary {
     pub objects: Vec<ObjectModel>,
     /// All cases.
     pub cases: Vec<BenchCase>,
+    /// Cases `--plan visible` left out.
+    pub skipped: Vec<SkippedCase>,
     /// Wall time, s.
     pub wall_s: f64,
-}
-
-/// The world's default parameters of `kind` on `object` with the strength scaled by `s`
-/// (1: the defaults). Strength per effect (`docs/gap.md`): drag coefficients × s; stiffness
-/// and mass contrasts ^ s; stiffening strain ÷ s and compression ratio ^ s; bending rigidity
-/// × s; static-minus-kinetic friction × s; yield strain and flow time ÷ s; actuation lag × s;
-/// grasp stiffness and slip force ÷ s; magnet acceleration × s. Clamped to the world's ranges.
-pub fn scaled_effect(object: ObjectKind, kind: EffectKind, s: f32) -> Effects {
-    let mut e = Effects::only(object, kind);
-    if let Some(d) = &mut e.drag {
-        d.normal_coefficient *= s;
-        d.tangential_coefficient *= s;
-    }
-    if let Some(h) = &mut e.stiffness_heterogeneity {
-        h.contrast = h.contrast.powf(s).min(1e8);
-    }
-    if let Some(n) = &mut e.nonlinear_elasticity {
-        n.stiffening_strain /= s;
-        n.compression_ratio = n.compression_ratio.powf(s).max(1e-3);
-    }
-    if let Some(b) = &mut e.bending {
-        b.rigidity *= s;
-    }
-    if let Some(f) = &mut e.friction {
-        f.static_coefficient =
-            f.kinetic_coefficient + s * (f.static_coefficient - f.kinetic_coefficient);
-    }
-    if let Some(p) = &mut e.plasticity {
-        p.yield_strain /= s;
-        p.flow_time_s /= s;
-    }
-    if let Some(a) = &mut e.actuation_delay {
-        a.lag_s = (a.lag_s * s).min(2.0);
-    }
-    if let Some(g) = &mut e.grasp_slip {
-        g.stiffness_n_m /= s;
-        g.slip_force_n /= s;
-    }
-    if let Some(m) = &mut e.mass_distribution {
-        m.contrast = m.contrast.powf(s).min(1e4);
-    }
-    if let Some(m) = &mut e.magnet {
-        m.peak_acceleration_m_s2 = (m.peak_acceleration_m_s2 * s).min(100.0);
-    }
-    e
 }
 
 fn generate(
@@ -363,6 +344,24 @@ fn generate(
     cfg.gaussian_particles = 0;
     let data = world::generate(&cfg)?;
     Ok(data.write(dir)?)
+}
+
+/// [`world::effect_displacement_m`] of `effects` on `object` with the bench's seed, tracked
+/// particles and motions, over `--val` recordings, cm.
+fn displacement_cm(
+    object: ObjectKind,
+    effects: Effects,
+    args: &DiagnoseBenchArgs,
+) -> anyhow::Result<f64> {
+    let mut cfg = world::GenConfig::fixture(object);
+    cfg.train_episodes = 0;
+    cfg.val_episodes = args.val.max(1);
+    cfg.episodes_per_recording = 1;
+    cfg.tracked = args.tracked;
+    cfg.seed = args.seed;
+    cfg.effects = effects;
+    cfg.motion = args.motion;
+    Ok(100.0 * world::effect_displacement_m(&cfg)?)
 }
 
 fn split(data: &Dataset) -> anyhow::Result<(Vec<Scene>, Vec<Scene>)> {
@@ -580,7 +579,7 @@ fn calibrate(
         let dir = args.work.join(format!("{object}-{kind}-x{s}"));
         let data = generate(
             object,
-            scaled_effect(object, kind, s),
+            Effects::only_scaled(object, kind, s),
             args.seed,
             args,
             &dir,
@@ -590,6 +589,7 @@ fn calibrate(
         let rung = Rung {
             scale: s,
             raise_cm: mde - model.train_mde_without_effect_cm,
+            displacement_cm: displacement_cm(object, Effects::only_scaled(object, kind, s), args)?,
         };
         let reached = rung.raise_cm >= target;
         ladder.push((rung, dir));
@@ -666,6 +666,7 @@ pub fn run_bench(args: &DiagnoseBenchArgs) -> anyhow::Result<BenchSummary> {
     }
     let mut objects = Vec::new();
     let mut out: Vec<BenchCase> = Vec::new();
+    let mut skipped: Vec<SkippedCase> = Vec::new();
     let save = |objects: &Vec<ObjectModel>, out: &Vec<BenchCase>| -> anyhow::Result<()> {
         if let Some(path) = &args.json {
             // Partial results survive an interrupted bench.
@@ -685,6 +686,25 @@ pub fn run_bench(args: &DiagnoseBenchArgs) -> anyhow::Result<BenchSummary> {
                 && !relevant_cases(object).contains(&truth.as_str())
             {
                 continue;
+            }
+            if args.plan == CasePlan::Visible && truth != "none" {
+                let kind: EffectKind = truth.parse()?;
+                let top = *scales.last().unwrap_or(&1.0);
+                let d = displacement_cm(object, Effects::only_scaled(object, kind, top), args)?;
+                if d < args.min_displacement_cm {
+                    skipped.push(SkippedCase {
+                        object: object.to_string(),
+                        truth: truth.clone(),
+                        scale: top,
+                        displacement_cm: d,
+                    });
+                    println!(
+                        "{object:<6} {truth:<24} skipped: moves the object {d:.2} cm at x{top} \
+                         (below --min-displacement-cm {})",
+                        args.min_displacement_cm
+                    );
+                    continue;
+                }
             }
             let t = Instant::now();
             let (data, dir, scale, ladder, reached) = if truth == "none" {
@@ -763,10 +783,12 @@ pub fn run_bench(args: &DiagnoseBenchArgs) -> anyhow::Result<BenchSummary> {
                 network: d.learnable.clone(),
                 tie_break: d.tie_break.clone(),
             };
-            let raise = case
-                .ladder
-                .last()
-                .map_or(String::new(), |r| format!(" raise {:+.2} cm", r.raise_cm));
+            let raise = case.ladder.last().map_or(String::new(), |r| {
+                format!(
+                    " raise {:+.2} cm (moves it {:.2} cm)",
+                    r.raise_cm, r.displacement_cm
+                )
+            });
             println!(
                 "{:<6} {:<24} x{:<3}{}{} verdict {:<24} (expected {}) control {:.3} cm, gap {:+.3} cm, true effect {} ({:.0} s + {:.0} s data)",
                 case.object,
@@ -866,6 +888,7 @@ pub fn run_bench(args: &DiagnoseBenchArgs) -> anyhow::Result<BenchSummary> {
         confusion,
         objects,
         cases: out,
+        skipped,
         wall_s: t0.elapsed().as_secs_f64(),
     };
     println!(
@@ -983,12 +1006,12 @@ mod tests {
         for object in ObjectKind::ALL {
             for kind in EffectKind::ALL {
                 assert_eq!(
-                    scaled_effect(object, kind, 1.0),
+                    Effects::only_scaled(object, kind, 1.0),
                     Effects::only(object, kind),
                     "{object} {kind}"
                 );
                 for &s in &stronger {
-                    let e = scaled_effect(object, kind, s);
+                    let e = Effects::only_scaled(object, kind, s);
                     assert!(e.validate().is_ok(), "{object} {kind} x{s}");
                     assert_eq!(e.enabled(), vec![kind]);
                     assert_ne!(e, Effects::only(object, kind), "{object} {kind} x{s}");
@@ -996,9 +1019,9 @@ mod tests {
             }
         }
         // Stronger means stronger: twice the drag coefficient, half the grasp's slip force.
-        let d = scaled_effect(ObjectKind::Paper, EffectKind::Drag, 2.0);
+        let d = Effects::only_scaled(ObjectKind::Paper, EffectKind::Drag, 2.0);
         assert_eq!(d.drag.unwrap().normal_coefficient, 2.4);
-        let g = scaled_effect(ObjectKind::Rope, EffectKind::GraspSlip, 2.0);
+        let g = Effects::only_scaled(ObjectKind::Rope, EffectKind::GraspSlip, 2.0);
         assert_eq!(g.grasp_slip.unwrap().slip_force_n, 1.5);
     }
 }

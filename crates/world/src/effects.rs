@@ -295,6 +295,51 @@ impl Effects {
         e
     }
 
+    /// The world's default parameters of `kind` on `object` with the strength scaled by `s`
+    /// (1: the defaults). Strength per effect (`docs/gap.md`; the `diagnose-bench` ladder): drag coefficients × s; stiffness
+    /// and mass contrasts ^ s; stiffening strain ÷ s and compression ratio ^ s; bending rigidity
+    /// × s; static-minus-kinetic friction × s; yield strain and flow time ÷ s; actuation lag × s;
+    /// grasp stiffness and slip force ÷ s; magnet acceleration × s. Clamped to the world's ranges.
+    pub fn only_scaled(object: ObjectKind, kind: EffectKind, s: f32) -> Self {
+        let mut e = Effects::only(object, kind);
+        if let Some(d) = &mut e.drag {
+            d.normal_coefficient *= s;
+            d.tangential_coefficient *= s;
+        }
+        if let Some(h) = &mut e.stiffness_heterogeneity {
+            h.contrast = h.contrast.powf(s).min(1e8);
+        }
+        if let Some(n) = &mut e.nonlinear_elasticity {
+            n.stiffening_strain /= s;
+            n.compression_ratio = n.compression_ratio.powf(s).max(1e-3);
+        }
+        if let Some(b) = &mut e.bending {
+            b.rigidity *= s;
+        }
+        if let Some(f) = &mut e.friction {
+            f.static_coefficient =
+                f.kinetic_coefficient + s * (f.static_coefficient - f.kinetic_coefficient);
+        }
+        if let Some(p) = &mut e.plasticity {
+            p.yield_strain /= s;
+            p.flow_time_s /= s;
+        }
+        if let Some(a) = &mut e.actuation_delay {
+            a.lag_s = (a.lag_s * s).min(2.0);
+        }
+        if let Some(g) = &mut e.grasp_slip {
+            g.stiffness_n_m /= s;
+            g.slip_force_n /= s;
+        }
+        if let Some(m) = &mut e.mass_distribution {
+            m.contrast = m.contrast.powf(s).min(1e4);
+        }
+        if let Some(m) = &mut e.magnet {
+            m.peak_acceleration_m_s2 = (m.peak_acceleration_m_s2 * s).min(100.0);
+        }
+        e
+    }
+
     /// Parses `none`, `default`, or a comma-separated list of effect names (each switched on
     /// with the object's default parameters).
     ///

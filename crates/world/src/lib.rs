@@ -16,7 +16,8 @@
 //! writes it with a `truth.json` recording effects and parameters, and per episode the fine
 //! surface particles' own Gaussians and true trajectories ([`TruthGaussians`],
 //! `truth_ep_NNNN.safetensors`), the ground truth for rendered frames. Formulas, defaults and
-//! timings are in `docs/world.md`. Units: metres, seconds, kilograms; z up, ground at z = 0.
+//! timings are in `docs/world.md`. [`effect_displacement_m`] measures how far an effect moves the
+//! object, before any model sees it. Units: metres, seconds, kilograms; z up, ground at z = 0.
 //!
 //! ```
 //! use world::{GenConfig, ObjectKind};
@@ -29,6 +30,7 @@
 //! ```
 
 mod build;
+mod displacement;
 mod effects;
 mod error;
 mod generate;
@@ -45,6 +47,7 @@ mod sim;
 mod truth_gaussians;
 
 pub use build::Resolution;
+pub use displacement::effect_displacement_m;
 pub use effects::{
     ActuationDelay, Bending, Drag, EffectKind, Effects, Friction, GraspSlip, Magnet,
     MassDistribution, NonlinearElasticity, Plasticity, StiffnessHeterogeneity, default_kinds,
