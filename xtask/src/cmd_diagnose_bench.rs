@@ -783,7 +783,9 @@ pub fn run_bench(args: &DiagnoseBenchArgs) -> anyhow::Result<BenchSummary> {
                 network: d.learnable.clone(),
                 tie_break: d.tie_break.clone(),
             };
-            let raise = case.ladder.last().map_or(String::new(), |r| {
+            // The rung the case uses (the last one climbed, or the one with the largest raise).
+            let rung = case.ladder.iter().find(|r| r.scale == case.scale);
+            let raise = rung.map_or(String::new(), |r| {
                 format!(
                     " raise {:+.2} cm (moves it {:.2} cm)",
                     r.raise_cm, r.displacement_cm

@@ -111,9 +111,11 @@ impl Candidate {
             ],
             // Up to 2 s at 10 fps: the reference world allows lags up to 2 s.
             Candidate::ActuationDelay => vec![Parameter::linear("delay_steps", 0.0, 20.0)],
+            // Per held particle. The lower bounds reach a sheet of paper held by a few
+            // particles whose grasp gives way under a fraction of its few grams' weight.
             Candidate::GraspSlip => vec![
-                Parameter::log("grasp_stiffness_n_per_m", 10.0, 1e5),
-                Parameter::log("slip_force_n", 0.1, 1000.0),
+                Parameter::log("grasp_stiffness_n_per_m", 0.3, 1e5),
+                Parameter::log("slip_force_n", 1e-3, 1000.0),
             ],
             Candidate::MassDistribution => vec![Parameter::linear("log_mass_slope", -2.0, 2.0)],
             Candidate::GravityScale => vec![Parameter::linear("gravity_factor", 0.5, 4.0)],
