@@ -111,11 +111,12 @@ impl Candidate {
             ],
             // Up to 2 s at 10 fps: the reference world allows lags up to 2 s.
             Candidate::ActuationDelay => vec![Parameter::linear("delay_steps", 0.0, 20.0)],
-            // Per held particle. The lower bounds reach a sheet of paper held by a few
-            // particles whose grasp gives way under a fraction of its few grams' weight.
+            // Relative to the object's weight (`forces::SlippingGrasp`): from a grasp that
+            // stretches a metre under the weight and slips at a hundredth of it, to one that
+            // is practically rigid.
             Candidate::GraspSlip => vec![
-                Parameter::log("grasp_stiffness_n_per_m", 0.3, 1e5),
-                Parameter::log("slip_force_n", 1e-3, 1000.0),
+                Parameter::log("grasp_relative_stiffness", 0.01, 1e4),
+                Parameter::log("grasp_relative_slip_force", 0.01, 1e4),
             ],
             Candidate::MassDistribution => vec![Parameter::linear("log_mass_slope", -2.0, 2.0)],
             Candidate::GravityScale => vec![Parameter::linear("gravity_factor", 0.5, 4.0)],
@@ -138,7 +139,7 @@ impl Candidate {
             Candidate::Friction => vec![0.5],
             Candidate::Plasticity => vec![0.02, 5.0],
             Candidate::ActuationDelay => vec![1.0],
-            Candidate::GraspSlip => vec![1000.0, 20.0],
+            Candidate::GraspSlip => vec![1.0, 1.0],
             Candidate::MassDistribution => vec![0.5],
             Candidate::GravityScale => vec![1.2],
             Candidate::ExternalField => vec![0.5, 0.5, 0.5, -2.0],
@@ -155,7 +156,7 @@ impl Candidate {
             Candidate::Friction | Candidate::ActuationDelay => vec![0.0],
             Candidate::GravityScale => vec![1.0],
             Candidate::Plasticity => vec![0.02, 0.0],
-            Candidate::GraspSlip => vec![1e6, 1e9],
+            Candidate::GraspSlip => vec![1e9, 1e12],
             Candidate::ExternalField => vec![0.0; 4],
         }
     }
@@ -182,10 +183,7 @@ impl Candidate {
                 rate: f(1),
             }),
             Candidate::ActuationDelay => Box::new(ActuationLag { steps: f(0) }),
-            Candidate::GraspSlip => Box::new(SlippingGrasp {
-                stiffness: f(0),
-                max_force: f(1),
-            }),
+            Candidate::GraspSlip => Box::new(SlippingGrasp::new(f(0), f(1))),
             Candidate::MassDistribution => Box::new(MassGradient {
                 slope: f(0),
                 material: frame.coordinate.clone(),

@@ -432,12 +432,38 @@ impl Effect for ActuationLag {
 /// Compliant, slipping grasp: a held particle is tied to its grasp point on the closed gripper
 /// by a spring `k_g` with damping `2 √(k_g m)` (critical); when the spring force exceeds
 /// `F_max` the grasp point slides so the force stays at `F_max`.
+///
+/// Both are given relative to the object, so that one starting guess suits a 5 g sheet and a
+/// 250 g toy: with `W` the model's total weight (Σ m × 9.81 m/s²) shared by its `n` held
+/// particles, `k_g = relative_stiffness · W / (1 cm · n)` (at 1 the grasp stretches 1 cm
+/// under the object's weight), capped at 10⁶ N/m per particle (a kinematic grasp for every
+/// object here), and `F_max = relative_slip_force · W / n` (at 1 the grasp slips at the
+/// object's weight). Resolved in [`Effect::setup`].
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SlippingGrasp {
-    /// Grasp spring stiffness, N/m.
-    pub stiffness: f32,
-    /// Force at which the grasp slips, N.
-    pub max_force: f32,
+    /// Grasp stiffness relative to the object's weight per centimetre (dimensionless).
+    pub relative_stiffness: f32,
+    /// Slip force relative to the object's weight (dimensionless).
+    pub relative_slip_force: f32,
+    /// Resolved grasp spring stiffness per held particle, N/m.
+    stiffness: f32,
+    /// Resolved slip force per held particle, N.
+    max_force: f32,
+}
+
+/// Per-particle grasp stiffness beyond which the grasp is kinematic for every object here, N/m.
+const MAX_GRASP_STIFFNESS_N_PER_M: f32 = 1e6;
+
+impl SlippingGrasp {
+    /// A grasp with the given relative stiffness and slip force (see the type's docs).
+    pub fn new(relative_stiffness: f32, relative_slip_force: f32) -> Self {
+        SlippingGrasp {
+            relative_stiffness,
+            relative_slip_force,
+            stiffness: 0.0,
+            max_force: 0.0,
+        }
+    }
 }
 
 struct GraspState {
@@ -455,15 +481,32 @@ impl Effect for SlippingGrasp {
     fn name(&self) -> &str {
         "grasp-slip"
     }
-    fn setup(&mut self, _model: &mut ModelSetup<'_>) -> Result<(), SimError> {
+    fn setup(&mut self, model: &mut ModelSetup<'_>) -> Result<(), SimError> {
         check_finite(
             self.name(),
-            &[("stiffness", self.stiffness), ("max_force", self.max_force)],
+            &[
+                ("relative_stiffness", self.relative_stiffness),
+                ("relative_slip_force", self.relative_slip_force),
+            ],
         )?;
-        if self.stiffness <= 0.0 || self.max_force <= 0.0 {
+        if self.relative_stiffness <= 0.0 || self.relative_slip_force <= 0.0 {
             return Err(bad(
                 self.name(),
-                "stiffness and max_force must be > 0".into(),
+                "relative stiffness and slip force must be > 0".into(),
+            ));
+        }
+        let held = model.held.iter().filter(|h| **h >= 0).count().max(1) as f32;
+        let weight_share = model.masses.iter().sum::<f32>() * 9.81 / held;
+        self.stiffness =
+            (self.relative_stiffness * weight_share / 0.01).min(MAX_GRASP_STIFFNESS_N_PER_M);
+        self.max_force = self.relative_slip_force * weight_share;
+        if !(self.stiffness > 0.0 && self.max_force > 0.0 && self.max_force.is_finite()) {
+            return Err(bad(
+                self.name(),
+                format!(
+                    "grasp resolves to {} N/m and {} N per held particle",
+                    self.stiffness, self.max_force
+                ),
             ));
         }
         Ok(())
