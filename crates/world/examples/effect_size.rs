@@ -2,8 +2,8 @@
 //! effect and strength (`Effects::only_scaled`), `world::effect_displacement_m` in cm (the
 //! mean distance between the tracked particles with the effect alone and without any effect,
 //! same seed, no observation model; 60 tracked particles, coarse resolution, one recording per
-//! episode). An effect that barely moves the
-//! object cannot be diagnosed from its data, whatever the diagnosis does.
+//! episode). An effect that barely moves the object cannot be diagnosed from its data,
+//! whatever the diagnosis does.
 //!
 //! `cargo run --release -p pgrd-world --example effect_size -- [objects] [scales] [episodes]`
 //! e.g. `-- rope,paper,sloth 1,4,16,64 8`.

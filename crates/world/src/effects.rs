@@ -296,10 +296,11 @@ impl Effects {
     }
 
     /// The world's default parameters of `kind` on `object` with the strength scaled by `s`
-    /// (1: the defaults). Strength per effect (`docs/gap.md`; the `diagnose-bench` ladder): drag coefficients × s; stiffness
-    /// and mass contrasts ^ s; stiffening strain ÷ s and compression ratio ^ s; bending rigidity
-    /// × s; static-minus-kinetic friction × s; yield strain and flow time ÷ s; actuation lag × s;
-    /// grasp stiffness and slip force ÷ s; magnet acceleration × s. Clamped to the world's ranges.
+    /// (1: the defaults; the `diagnose-bench` ladder, `docs/gap.md`). Strength per effect: drag
+    /// coefficients × s; stiffness and mass contrasts ^ s; stiffening strain ÷ s and
+    /// compression ratio ^ s; bending rigidity × s; static-minus-kinetic friction × s; yield
+    /// strain and flow time ÷ s; actuation lag × s; grasp stiffness and slip force ÷ s; magnet
+    /// acceleration × s. Clamped to the world's ranges.
     pub fn only_scaled(object: ObjectKind, kind: EffectKind, s: f32) -> Self {
         let mut e = Effects::only(object, kind);
         if let Some(d) = &mut e.drag {
