@@ -10,7 +10,8 @@
 //! 4. per effect: the effect alone, its strength scaled up the ladder `--scales` until the base
 //!    model refitted on it (the diagnosis' control refit) has a training MDE above the same
 //!    refit's on the no-effect data by `--target-raise` × the latter (chosen before and
-//!    independently of the diagnosis); then diagnosed against the base model.
+//!    independently of the diagnosis), or, if no rung does, at the rung where the effect moves
+//!    the object most; then diagnosed against the base model.
 //!
 //! Every control refit starts from the same base model with the same seed and budget, and the
 //! effect data share the no-effect data's seed (same placements and gripper motions), so the
@@ -597,23 +598,29 @@ fn calibrate(
             break;
         }
     }
-    let reached = ladder.last().is_some_and(|(r, _)| r.raise_cm >= target);
-    // Not reached: the rung with the largest raise.
-    let pick = if reached {
-        ladder.len() - 1
-    } else {
-        (0..ladder.len())
-            .max_by(|a, b| ladder[*a].0.raise_cm.total_cmp(&ladder[*b].0.raise_cm))
-            .ok_or_else(|| anyhow::anyhow!("--scales is empty"))?
-    };
+    let rungs: Vec<Rung> = ladder.iter().map(|(r, _)| r.clone()).collect();
+    let (pick, reached) =
+        pick_rung(&rungs, target).ok_or_else(|| anyhow::anyhow!("--scales is empty"))?;
     let data = Dataset::open(&ladder[pick].1)?;
-    let scale = ladder[pick].0.scale;
-    Ok((
-        data,
-        scale,
-        ladder.into_iter().map(|(r, _)| r).collect(),
-        reached,
-    ))
+    Ok((data, rungs[pick].scale, rungs, reached))
+}
+
+/// The rung a case runs at, and whether it reached the target raise: the last rung climbed
+/// when it did; otherwise the rung where the effect moves the object most. (The rung with the
+/// largest raise, the rule until session 18, was often x1, where the effect moves the object
+/// by less than a centimetre: the refit absorbs weak and strong versions alike, so the raise
+/// says little there.) `None` for an empty ladder.
+fn pick_rung(ladder: &[Rung], target_cm: f64) -> Option<(usize, bool)> {
+    let last = ladder.len().checked_sub(1)?;
+    if ladder[last].raise_cm >= target_cm {
+        return Some((last, true));
+    }
+    let most_visible = (0..ladder.len()).max_by(|a, b| {
+        ladder[*a]
+            .displacement_cm
+            .total_cmp(&ladder[*b].displacement_cm)
+    })?;
+    Some((most_visible, false))
 }
 
 fn share(cases: &[&BenchCase]) -> f64 {
@@ -783,7 +790,7 @@ pub fn run_bench(args: &DiagnoseBenchArgs) -> anyhow::Result<BenchSummary> {
                 network: d.learnable.clone(),
                 tie_break: d.tie_break.clone(),
             };
-            // The rung the case uses (the last one climbed, or the one with the largest raise).
+            // The rung the case uses (the last one climbed, or the one that moves the object most).
             let rung = case.ladder.iter().find(|r| r.scale == case.scale);
             let raise = rung.map_or(String::new(), |r| {
                 format!(
@@ -931,6 +938,32 @@ mod tests {
                 assert!(name.parse::<EffectKind>().is_ok(), "{object}: {name}");
             }
         }
+    }
+
+    #[test]
+    fn a_case_runs_at_its_last_rung_or_its_most_visible_one() {
+        let rung = |scale, raise_cm, displacement_cm| Rung {
+            scale,
+            raise_cm,
+            displacement_cm,
+        };
+        // Reached at x16: the last rung climbed.
+        let reached = [
+            rung(1.0, 0.1, 0.5),
+            rung(4.0, 0.3, 2.0),
+            rung(16.0, 1.2, 4.0),
+        ];
+        assert_eq!(pick_rung(&reached, 1.0), Some((2, true)));
+        // Never reached: the rung that moves the object most, not the one with the largest
+        // raise (x1 here).
+        let missed = [
+            rung(1.0, 0.4, 0.4),
+            rung(4.0, -0.2, 1.5),
+            rung(16.0, 0.1, 3.0),
+            rung(64.0, 0.0, 2.9),
+        ];
+        assert_eq!(pick_rung(&missed, 1.0), Some((2, false)));
+        assert_eq!(pick_rung(&[], 1.0), None);
     }
 
     /// The bench's arguments as parsed from a command line (after the subcommand).
