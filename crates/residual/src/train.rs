@@ -14,6 +14,7 @@ use serde::{Deserialize, Serialize};
 use springs::{Backbone, BackboneOptions, SpringParams, State};
 
 mod holdout;
+mod oracle;
 
 pub use holdout::clearly_better;
 
@@ -295,40 +296,43 @@ impl TrainSet {
     /// tracked particle seen in the next recorded frame gets the velocity change (bounded by
     /// `bound` m/s per axis) that moves it toward that frame.
     pub(crate) fn guided_trajectories(&self, bound: f32) -> Result<Vec<Trajectory>> {
-        let dt = 1.0 / self.meta.fps;
         self.episodes
             .iter()
-            .map(|ep| {
-                let base = &ep.base;
-                let Trajectory { mut x, mut v } = Trajectory::start(ep);
-                let mut state = base.init.clone();
-                let mut scratch = ep.backbone.scratch();
-                for step in 0..base.window.steps {
-                    let (Some(from), Some(to)) =
-                        (base.actions.frame(step), base.actions.frame(step + 1))
-                    else {
-                        break;
-                    };
-                    ep.backbone.step(&mut state, from, to, &mut scratch)?;
-                    let seen = &base.visible[step];
-                    let all = !seen.iter().any(|s| *s);
-                    let targets = base.truth[step].iter().zip(seen).zip(&base.held);
-                    for (i, ((target, &seen), &g)) in targets.enumerate() {
-                        let held = g >= 0 && from.closed.get(g as usize).copied().unwrap_or(false);
-                        if held || !(all || seen) {
-                            continue;
-                        }
-                        let dv = ((*target - state.x[i]) / dt)
-                            .clamp(Vec3::splat(-bound), Vec3::splat(bound));
-                        state.x[i] += dv * dt;
-                        state.v[i] += dv;
-                    }
-                    x.push(state.x.clone());
-                    v.push(state.v.clone());
-                }
-                Ok(Trajectory { x, v })
-            })
+            .map(|ep| self.guided_trajectory(ep, bound))
             .collect()
+    }
+
+    /// `ep`'s guided backbone trajectory (see [`TrainSet::guided_trajectories`]); a bound of 0
+    /// gives the backbone's own rollout.
+    fn guided_trajectory(&self, ep: &TrainEpisode, bound: f32) -> Result<Trajectory> {
+        let dt = 1.0 / self.meta.fps;
+        let base = &ep.base;
+        let Trajectory { mut x, mut v } = Trajectory::start(ep);
+        let mut state = base.init.clone();
+        let mut scratch = ep.backbone.scratch();
+        for step in 0..base.window.steps {
+            let (Some(from), Some(to)) = (base.actions.frame(step), base.actions.frame(step + 1))
+            else {
+                break;
+            };
+            ep.backbone.step(&mut state, from, to, &mut scratch)?;
+            let seen = &base.visible[step];
+            let all = !seen.iter().any(|s| *s);
+            let targets = base.truth[step].iter().zip(seen).zip(&base.held);
+            for (i, ((target, &seen), &g)) in targets.enumerate() {
+                let held = g >= 0 && from.closed.get(g as usize).copied().unwrap_or(false);
+                if held || !(all || seen) {
+                    continue;
+                }
+                let dv =
+                    ((*target - state.x[i]) / dt).clamp(Vec3::splat(-bound), Vec3::splat(bound));
+                state.x[i] += dv * dt;
+                state.v[i] += dv;
+            }
+            x.push(state.x.clone());
+            v.push(state.v.clone());
+        }
+        Ok(Trajectory { x, v })
     }
 
     /// A random segment of `steps` steps from a recorded frame with two recorded history

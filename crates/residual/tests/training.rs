@@ -356,3 +356,44 @@ fn one_standard_error_rule() {
     assert!(!clearly_better(&all[..3], &cur));
     assert!(!clearly_better(&[1.0], &[2.0]));
 }
+
+/// The greedy bounded oracle is scored as evaluation scores: with bound 0 it is the
+/// backbone's held-out MDE; with a bound no correction reaches it puts every free seen
+/// tracked particle on its recorded position, so only the held particles (which follow the
+/// gripper, not their noisy records) keep an error; in between it lies between the two, and
+/// it rejects a bound that is not a finite non-negative speed.
+#[test]
+fn bounded_oracle_spans_backbone_to_truth() {
+    let s = common::rope_train_set();
+    let mean = |v: &[(usize, f64)]| v.iter().map(|e| e.1).sum::<f64>() / v.len() as f64;
+    let backbone = s.oracle_mde_cm(0.0, usize::MAX).unwrap();
+    assert_eq!(
+        backbone.iter().map(|e| e.0).collect::<Vec<_>>(),
+        s.episode_indices()
+    );
+    let want = mean(
+        &s.rollout_mde_cm(None)
+            .unwrap()
+            .into_iter()
+            .enumerate()
+            .collect::<Vec<_>>(),
+    );
+    assert!(
+        (mean(&backbone) - want).abs() < 1e-9 * want,
+        "{backbone:?} vs {want} cm"
+    );
+    let paper = mean(&s.oracle_mde_cm(0.1, usize::MAX).unwrap());
+    assert!(paper < mean(&backbone), "{paper} vs {want} cm");
+    let perfect = mean(&s.oracle_mde_cm(1e4, usize::MAX).unwrap());
+    assert!(
+        perfect < 0.05 * mean(&backbone) && perfect < paper,
+        "{perfect} vs {paper} cm"
+    );
+    // At most one episode of the set: the first.
+    let one = s.oracle_mde_cm(0.1, 1).unwrap();
+    assert_eq!(one.len(), 1);
+    assert_eq!(one[0].0, s.episode_indices()[0]);
+    for bad in [-0.1, f32::NAN, f32::INFINITY] {
+        assert!(s.oracle_mde_cm(bad, 1).is_err());
+    }
+}
