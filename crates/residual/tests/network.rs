@@ -165,6 +165,44 @@ fn checkpoint_reloads_to_identical_predictions() {
     std::fs::remove_dir_all(dir).ok();
 }
 
+/// An untrained network adds about the same residual whatever its bound (its output layers
+/// start smaller by 0.1 / bound), so a step-0 network stays near the backbone; at the paper's
+/// bound the draw is unchanged.
+#[test]
+fn untrained_residual_does_not_grow_with_the_bound() {
+    let (_, _, scene, history, bb) = common::scene("rope", 1);
+    let opts = RolloutOptions {
+        steps: 3,
+        ..Default::default()
+    };
+    let sim = bb.rollout(&scene.init, &scene.actions).unwrap().positions;
+    // Largest distance from the backbone alone over the first steps, m.
+    let offset = |scale: f32| {
+        let cfg = ModelConfig {
+            residual_scale: scale,
+            ..ModelConfig::tiny()
+        };
+        let net = ResidualNet::new(&cfg, 5).unwrap();
+        let out = hybrid_rollout(&net, &bb, &scene, &history, opts).unwrap();
+        out.positions
+            .iter()
+            .zip(&sim[1..])
+            .flat_map(|(p, s)| p.iter().zip(s).map(|(a, b)| a.distance(*b)))
+            .fold(0.0f32, f32::max)
+    };
+    let paper = offset(0.1);
+    assert!(paper > 0.0);
+    for wide in [1.0, 2.0] {
+        let d = offset(wide);
+        assert!(
+            d < 2.0 * paper && d > 0.5 * paper,
+            "bound {wide}: {d} m vs {paper} m at 0.1"
+        );
+    }
+    // A bound below the paper's is not scaled up: its residual is smaller.
+    assert!(offset(0.01) < paper);
+}
+
 /// `predict` (a planner's entry point: state, history, actions, no truth) runs the same model
 /// as the scene-based rollout, and a segment of a scene continues it exactly.
 #[test]

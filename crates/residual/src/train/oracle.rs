@@ -8,9 +8,10 @@
 //! oracle rolls the backbone out over an episode's evaluation window and after every step
 //! gives each free tracked particle seen in the next recorded frame the velocity change,
 //! clamped to the bound, that moves it toward that frame (the guided rollout of
-//! [`StartFrom::Guided`](crate::StartFrom)). It knows the future, so it is a ceiling on what a
-//! network with that bound could reach, not a forecast of what training reaches
-//! (`docs/residual.md`, "The bound's ceiling").
+//! [`StartFrom::Guided`](crate::StartFrom)). It knows the next frame, which no network does,
+//! but looks no further, so a corrector that anticipates could do better: it is a reference
+//! for where the bound rather than the network limits the gain, not a forecast of what
+//! training reaches (`docs/residual.md`, "The bound's ceiling").
 
 use rayon::prelude::*;
 
