@@ -58,7 +58,7 @@ pub enum SimGradientArg {
 }
 
 /// Arguments of `train`.
-#[derive(clap::Args)]
+#[derive(Clone, clap::Args)]
 pub struct TrainArgs {
     /// Dataset directory (its train split is used).
     #[arg(long)]
@@ -154,9 +154,12 @@ pub struct TrainArgs {
     /// evaluate with).
     #[arg(long, value_enum, default_value_t = ProtocolArg::Paper)]
     pub protocol: ProtocolArg,
-    /// Residual bound, m/s per axis (0.1 in the paper).
-    #[arg(long, default_value_t = 0.1)]
-    pub residual_scale: f32,
+    /// Residual bound, m/s per axis and step (0.1 in the paper). Several, comma-separated
+    /// (e.g. 0.1,0.5,1,2), need --holdout: one network is trained per bound in
+    /// <run>/bound_<b>/ and the run keeps the narrowest bound's unless a wider one's is clearly
+    /// better on the held-out episodes (docs/residual.md, "Choosing the bound").
+    #[arg(long, value_delimiter = ',', default_value = "0.1")]
+    pub residual_scale: Vec<f32>,
     /// Loss of each rollout step: `mse` (cm², the paper's) or `distance` (cm, the MDE that
     /// evaluation reports; robust to segments the bounded residual cannot fix).
     #[arg(long, value_enum, default_value_t = LossArg::Mse)]
@@ -267,7 +270,7 @@ fn model_config(args: &TrainArgs) -> ModelConfig {
         } else {
             ResidualKind::Velocity
         },
-        residual_scale: args.residual_scale,
+        residual_scale: args.residual_scale.first().copied().unwrap_or(0.1),
         gripper_inputs: args.gripper_inputs,
         ..ModelConfig::default()
     }
@@ -302,8 +305,18 @@ fn floats(v: &serde_json::Value, key: &str) -> Vec<f64> {
         .unwrap_or_default()
 }
 
-/// Trains the residual network and writes the run's files.
+/// Trains the residual network and writes the run's files; with several bounds, one network
+/// per bound and the held-out episodes' choice (`crate::train_bounds`).
 pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
+    match args.residual_scale.len() {
+        0 => anyhow::bail!("--residual-scale needs a value"),
+        1 => train_one(args),
+        _ => crate::train_bounds::run(args),
+    }
+}
+
+/// Trains one network, with the bound `args.residual_scale[0]`.
+fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
     let t0 = Instant::now();
     // candle's matmul reads the thread count from RAYON_NUM_THREADS and runs on rayon's global
     // pool; building that pool with `threads` workers bounds both.

@@ -20,6 +20,7 @@ mod cmd_render;
 mod cmd_train;
 mod common;
 mod report;
+mod train_bounds;
 
 #[derive(Parser)]
 #[command(name = "cargo xtask", about = "pgrd pipelines", version)]

@@ -1,0 +1,172 @@
+//! `cargo xtask train --residual-scale a,b,… --holdout K`: one network per residual bound, and
+//! the run keeps the one its held-out training episodes prefer.
+//!
+//! The paper's bound (0.1 m/s per axis and step) caps what the network can correct, and how much
+//! room an object needs differs by an order of magnitude (`docs/residual.md`, "The bound's
+//! ceiling"); a wider bound also lets the network drift further. So the bound is chosen like a
+//! checkpoint: each candidate is trained in `<run>/bound_<b>/` with held-out selection, and,
+//! going up from the narrowest, a wider bound replaces the choice only when its selected
+//! network is [`residual::clearly_better`] on the same held-out episodes. The val split is never
+//! read.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::Context;
+use serde::Serialize;
+
+use crate::cmd_train::TrainArgs;
+use crate::report::write_json;
+
+/// One candidate bound's outcome, in `<run>/train.json` (`bound_choice`).
+#[derive(Clone, Debug, Serialize)]
+struct Candidate {
+    /// The bound, m/s per axis and step (as written on the command line, not widened from f32).
+    bound: f64,
+    /// Its run directory.
+    run: PathBuf,
+    /// Held-out rollout MDE of its selected network, cm.
+    heldout_mde_cm: f64,
+    /// The same per held-out episode, cm.
+    heldout_episode_mde_cm: Vec<f64>,
+}
+
+/// Sorted, distinct bounds; an error for a non-positive or non-finite one.
+fn checked_bounds(bounds: &[f32]) -> anyhow::Result<Vec<f32>> {
+    anyhow::ensure!(
+        bounds.iter().all(|b| b.is_finite() && *b > 0.0),
+        "--residual-scale values must be finite and > 0 m/s, got {bounds:?}"
+    );
+    let mut sorted = bounds.to_vec();
+    sorted.sort_by(f32::total_cmp);
+    sorted.dedup();
+    Ok(sorted)
+}
+
+/// Index of the chosen candidate (`per_episode` in increasing bound order): the narrowest,
+/// replaced by a wider one only when that one is clearly better than the current choice.
+fn choose(per_episode: &[Vec<f64>]) -> usize {
+    let mut best = 0;
+    for (i, errors) in per_episode.iter().enumerate().skip(1) {
+        if residual::clearly_better(errors, &per_episode[best]) {
+            best = i;
+        }
+    }
+    best
+}
+
+/// Copies `from` to `to` through a temporary file and a rename.
+fn copy_atomic(from: &Path, to: &Path) -> anyhow::Result<()> {
+    let bytes = std::fs::read(from).with_context(|| format!("reading {}", from.display()))?;
+    dataset::write_atomic(to, &bytes).with_context(|| format!("writing {}", to.display()))
+}
+
+/// Trains one network per bound of `args.residual_scale` and keeps the chosen one in `args.run`.
+pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
+    anyhow::ensure!(
+        args.holdout > 0,
+        "several --residual-scale values need --holdout K: the bound is chosen on held-out \
+         training episodes, never on the val split"
+    );
+    let bounds = checked_bounds(&args.residual_scale)?;
+    let backbone = args.run.join("backbone.json");
+    anyhow::ensure!(
+        backbone.exists(),
+        "{} not found: fit the backbone first (cargo xtask fit)",
+        backbone.display()
+    );
+    let mut candidates = Vec::with_capacity(bounds.len());
+    for (k, &bound) in bounds.iter().enumerate() {
+        let dir = args.run.join(format!("bound_{bound}"));
+        std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+        copy_atomic(&backbone, &dir.join("backbone.json"))?;
+        if !args.quiet {
+            eprintln!(
+                "bound {bound} m/s ({} of {}) -> {}",
+                k + 1,
+                bounds.len(),
+                dir.display()
+            );
+        }
+        let mut one = args.clone();
+        one.residual_scale = vec![bound];
+        one.run = dir.clone();
+        crate::cmd_train::run(&one).with_context(|| format!("training with bound {bound}"))?;
+        let report: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(dir.join("train.json"))?)?;
+        let per_episode: Vec<f64> = report["selection"]["best_episode_mde_cm"]
+            .as_array()
+            .map(|a| a.iter().filter_map(serde_json::Value::as_f64).collect())
+            .unwrap_or_default();
+        anyhow::ensure!(
+            !per_episode.is_empty(),
+            "{} records no held-out selection",
+            dir.join("train.json").display()
+        );
+        candidates.push(Candidate {
+            bound: bound.to_string().parse()?,
+            run: dir,
+            heldout_mde_cm: per_episode.iter().sum::<f64>() / per_episode.len() as f64,
+            heldout_episode_mde_cm: per_episode,
+        });
+    }
+    let errors: Vec<Vec<f64>> = candidates
+        .iter()
+        .map(|c| c.heldout_episode_mde_cm.clone())
+        .collect();
+    let chosen = &candidates[choose(&errors)];
+    for file in ["residual.safetensors", "residual.json"] {
+        copy_atomic(&chosen.run.join(file), &args.run.join(file))?;
+    }
+    let mut report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(chosen.run.join("train.json"))?)?;
+    report["bound_choice"] = serde_json::json!({
+        "rule": "narrowest bound unless a wider one is clearly better on the held-out episodes",
+        "chosen": chosen.bound,
+        "candidates": candidates,
+    });
+    let report_path = args.run.join("train.json");
+    write_json(&report_path, &report)?;
+    let summary: Vec<String> = candidates
+        .iter()
+        .map(|c| format!("{} m/s {:.3} cm", c.bound, c.heldout_mde_cm))
+        .collect();
+    println!(
+        "bound {} m/s chosen (held-out rollout MDE: {}) -> {}",
+        chosen.bound,
+        summary.join(", "),
+        report_path.display()
+    );
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bounds_are_sorted_distinct_and_positive() {
+        assert_eq!(
+            checked_bounds(&[1.0, 0.1, 0.5, 1.0]).unwrap(),
+            vec![0.1, 0.5, 1.0]
+        );
+        for bad in [0.0, -0.1, f32::NAN, f32::INFINITY] {
+            assert!(checked_bounds(&[0.1, bad]).is_err(), "{bad}");
+        }
+    }
+
+    #[test]
+    fn a_wider_bound_must_be_clearly_better() {
+        let narrow = vec![4.0, 5.0, 6.0, 5.0];
+        // Lower on average but not on every episode by much: not clearly better.
+        let noisy = vec![3.0, 6.5, 5.0, 5.2];
+        // Lower on every episode by about 1 cm: clearly better.
+        let wide = vec![3.1, 3.9, 5.0, 4.0];
+        assert_eq!(choose(&[narrow.clone(), noisy.clone()]), 0);
+        assert_eq!(choose(&[narrow.clone(), wide.clone()]), 1);
+        // Compared with the current choice, not with the narrowest.
+        let wider = vec![3.0, 4.0, 4.9, 4.1];
+        assert_eq!(choose(&[narrow.clone(), wide.clone(), wider]), 1);
+        let widest = vec![2.0, 2.9, 4.0, 3.0];
+        assert_eq!(choose(&[narrow, noisy, wide, widest]), 3);
+    }
+}
