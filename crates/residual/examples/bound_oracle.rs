@@ -13,41 +13,30 @@
 //!
 //! Only backbones without library effects (`backbone.json` without `effects`).
 
-use dataset::{Dataset, Split};
+mod common;
+
+use dataset::Split;
 use residual::TrainSet;
-use scene::{Protocol, SceneConfig};
+use scene::SceneConfig;
 
-type Error = Box<dyn std::error::Error>;
-
-fn main() -> Result<(), Error> {
-    let args: Vec<String> = std::env::args().skip(1).collect();
-    let usage = "usage: bound_oracle <data-dir> <run-dir> [paper|deform] [bounds] [episodes]";
-    let (Some(data_dir), Some(run)) = (args.first(), args.get(1)) else {
-        return Err(usage.into());
-    };
-    let protocol = match args.get(2).map(String::as_str) {
-        None | Some("paper") => Protocol::Paper,
-        Some("deform") => Protocol::Deform,
-        Some(p) => return Err(format!("unknown protocol {p}; {usage}").into()),
-    };
-    let bounds: Vec<f32> = args
-        .get(3)
+fn main() -> Result<(), common::Error> {
+    let common::Inputs {
+        data_dir,
+        data,
+        protocol,
+        params,
+        rest,
+        ..
+    } = common::inputs(
+        "usage: bound_oracle <data-dir> <run-dir> [paper|deform] [bounds] [episodes]",
+    )?;
+    let bounds: Vec<f32> = rest
+        .first()
         .map_or("0.1,0.2,0.5,1,2", String::as_str)
         .split(',')
         .map(str::parse)
         .collect::<Result<_, _>>()?;
-    let max_episodes: usize = args.get(4).map_or(Ok(30), |s| s.parse())?;
-    let data = Dataset::open(data_dir)?;
-    let file: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(
-        std::path::Path::new(run).join("backbone.json"),
-    )?)?;
-    if file
-        .get("effects")
-        .is_some_and(|e| e.as_array().is_some_and(|a| !a.is_empty()))
-    {
-        return Err("backbones with library effects are not supported here".into());
-    }
-    let params: springs::SpringParams = serde_json::from_value(file["params"].clone())?;
+    let max_episodes: usize = rest.get(1).map_or(Ok(30), |s| s.parse())?;
     let set = TrainSet::with_protocol(
         &data,
         Split::Train,

@@ -14,38 +14,23 @@
 //!
 //! Only backbones without library effects (`backbone.json` without `effects`).
 
-use std::path::PathBuf;
+mod common;
 
-use dataset::{Dataset, Split};
+use dataset::Split;
 use glam::Vec3;
 use residual::{History, ResidualNet, RolloutOptions, hybrid_rollout};
-use scene::{Protocol, Scene, SceneConfig};
+use scene::{Scene, SceneConfig};
 
-type Error = Box<dyn std::error::Error>;
-
-fn main() -> Result<(), Error> {
-    let args: Vec<String> = std::env::args().skip(1).collect();
-    let usage = "usage: residual_bound <data-dir> <run-dir> [paper|deform] [episodes]";
-    let (Some(data_dir), Some(run)) = (args.first(), args.get(1)) else {
-        return Err(usage.into());
-    };
-    let protocol = match args.get(2).map(String::as_str) {
-        None | Some("paper") => Protocol::Paper,
-        Some("deform") => Protocol::Deform,
-        Some(p) => return Err(format!("unknown protocol {p}; {usage}").into()),
-    };
-    let max_episodes: usize = args.get(3).map_or(Ok(usize::MAX), |s| s.parse())?;
-    let run = PathBuf::from(run);
-    let data = Dataset::open(data_dir)?;
-    let file: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(run.join("backbone.json"))?)?;
-    if file
-        .get("effects")
-        .is_some_and(|e| e.as_array().is_some_and(|a| !a.is_empty()))
-    {
-        return Err("backbones with library effects are not supported here".into());
-    }
-    let params: springs::SpringParams = serde_json::from_value(file["params"].clone())?;
+fn main() -> Result<(), common::Error> {
+    let common::Inputs {
+        data,
+        run,
+        protocol,
+        params,
+        rest,
+        ..
+    } = common::inputs("usage: residual_bound <data-dir> <run-dir> [paper|deform] [episodes]")?;
+    let max_episodes: usize = rest.first().map_or(Ok(usize::MAX), |s| s.parse())?;
     let net = ResidualNet::load(&run.join("residual.safetensors"))?;
     let bound = net.config().residual_scale;
     // Fractions of the bound: < 0.1, < 0.5, < 0.9, < 0.99, ≥ 0.99.
