@@ -24,6 +24,8 @@ struct Candidate {
     bound: f64,
     /// Its run directory.
     run: PathBuf,
+    /// Optimiser step of its selected network (0: no trained network beat the untrained one).
+    selected_step: u64,
     /// Held-out rollout MDE of its selected network, cm.
     heldout_mde_cm: f64,
     /// The same per held-out episode, cm.
@@ -42,12 +44,19 @@ fn checked_bounds(bounds: &[f32]) -> anyhow::Result<Vec<f32>> {
     Ok(sorted)
 }
 
-/// Index of the chosen candidate (`per_episode` in increasing bound order): the narrowest,
-/// replaced by a wider one only when that one is clearly better than the current choice.
-fn choose(per_episode: &[Vec<f64>]) -> usize {
+/// Index of the chosen candidate (`per_episode` and `selected_step` in increasing bound order):
+/// the narrowest, replaced by a wider one only when that one is clearly better than the current
+/// choice.
+///
+/// A wider bound whose selected network is the untrained step-0 one never replaces the choice:
+/// output layers start scaled to the bound, so every step-0 network is nearly the backbone, and
+/// their held-out errors differ by float rounding (10⁻⁶ cm) that can be consistently signed,
+/// which the one-standard-error rule alone would call clearly better.
+fn choose(per_episode: &[Vec<f64>], selected_step: &[u64]) -> usize {
     let mut best = 0;
     for (i, errors) in per_episode.iter().enumerate().skip(1) {
-        if residual::clearly_better(errors, &per_episode[best]) {
+        let trained = selected_step.get(i).is_some_and(|&s| s > 0);
+        if trained && residual::clearly_better(errors, &per_episode[best]) {
             best = i;
         }
     }
@@ -97,14 +106,16 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
             .as_array()
             .map(|a| a.iter().filter_map(serde_json::Value::as_f64).collect())
             .unwrap_or_default();
+        let selected_step = report["selection"]["best_step"].as_u64();
         anyhow::ensure!(
-            !per_episode.is_empty(),
+            !per_episode.is_empty() && selected_step.is_some(),
             "{} records no held-out selection",
             dir.join("train.json").display()
         );
         candidates.push(Candidate {
             bound: bound.to_string().parse()?,
             run: dir,
+            selected_step: selected_step.unwrap_or(0),
             heldout_mde_cm: per_episode.iter().sum::<f64>() / per_episode.len() as f64,
             heldout_episode_mde_cm: per_episode,
         });
@@ -113,14 +124,15 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
         .iter()
         .map(|c| c.heldout_episode_mde_cm.clone())
         .collect();
-    let chosen = &candidates[choose(&errors)];
+    let steps: Vec<u64> = candidates.iter().map(|c| c.selected_step).collect();
+    let chosen = &candidates[choose(&errors, &steps)];
     for file in ["residual.safetensors", "residual.json"] {
         copy_atomic(&chosen.run.join(file), &args.run.join(file))?;
     }
     let mut report: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(chosen.run.join("train.json"))?)?;
     report["bound_choice"] = serde_json::json!({
-        "rule": "narrowest bound unless a wider one is clearly better on the held-out episodes",
+        "rule": "narrowest bound unless a wider one's trained network is clearly better on the held-out episodes",
         "chosen": chosen.bound,
         "candidates": candidates,
     });
@@ -161,12 +173,38 @@ mod tests {
         let noisy = vec![3.0, 6.5, 5.0, 5.2];
         // Lower on every episode by about 1 cm: clearly better.
         let wide = vec![3.1, 3.9, 5.0, 4.0];
-        assert_eq!(choose(&[narrow.clone(), noisy.clone()]), 0);
-        assert_eq!(choose(&[narrow.clone(), wide.clone()]), 1);
+        let trained = [250, 250, 250, 250];
+        assert_eq!(choose(&[narrow.clone(), noisy.clone()], &trained[..2]), 0);
+        assert_eq!(choose(&[narrow.clone(), wide.clone()], &trained[..2]), 1);
         // Compared with the current choice, not with the narrowest.
         let wider = vec![3.0, 4.0, 4.9, 4.1];
-        assert_eq!(choose(&[narrow.clone(), wide.clone(), wider]), 1);
+        assert_eq!(
+            choose(
+                &[narrow.clone(), wide.clone(), wider.clone()],
+                &trained[..3]
+            ),
+            1
+        );
         let widest = vec![2.0, 2.9, 4.0, 3.0];
-        assert_eq!(choose(&[narrow, noisy, wide, widest]), 3);
+        assert_eq!(
+            choose(
+                &[narrow.clone(), noisy.clone(), wide.clone(), widest.clone()],
+                &trained
+            ),
+            3
+        );
+        // An untrained (step-0) network never replaces the choice, however its errors compare.
+        assert_eq!(choose(&[narrow.clone(), wide.clone()], &[250, 0]), 0);
+        assert_eq!(choose(&[narrow, wide, widest], &[0, 0, 500]), 2);
+    }
+
+    #[test]
+    fn step_zero_networks_that_differ_by_rounding_keep_the_narrowest() {
+        // Seen on the rope (session 20): three step-0 networks, held-out errors within 2e-6 cm,
+        // the widest lower on every episode, so the one-standard-error rule alone picks it.
+        let narrow = vec![0.9188515, 1.1586323, 2.1989870, 1.4545840, 0.8495014];
+        let wide = vec![0.9188538, 1.1586309, 2.1989832, 1.4545829, 0.8494976];
+        assert!(residual::clearly_better(&wide, &narrow));
+        assert_eq!(choose(&[narrow, wide], &[0, 0]), 0);
     }
 }
