@@ -26,7 +26,7 @@ pub enum EncoderArg {
 }
 
 /// `--start-from`.
-#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
 pub enum StartArg {
     /// The model's own rollout states (what evaluation meets).
     Rollout,
@@ -144,9 +144,11 @@ pub struct TrainArgs {
     /// the recorded frames, half as `rollout`), `rollout` (the model's own states along the
     /// evaluation window, refreshed with the hybrid model every --refresh-every steps),
     /// `recorded` (tracked frames, as the reference code) or `guided-recorded` (half
-    /// guided, half recorded). See docs/residual.md.
-    #[arg(long, value_enum, default_value_t = StartArg::Guided)]
-    pub start_from: StartArg,
+    /// guided, half recorded). See docs/residual.md. Several, comma-separated (e.g.
+    /// guided,recorded), need --holdout: one network per start mode and bound, and the held-out
+    /// episodes choose (as for several --residual-scale values).
+    #[arg(long, value_enum, value_delimiter = ',', default_value = "guided")]
+    pub start_from: Vec<StartArg>,
     /// Re-run the hybrid model over the training episodes every this many steps (0: never).
     #[arg(long, default_value_t = 0)]
     pub refresh_every: usize,
@@ -156,8 +158,9 @@ pub struct TrainArgs {
     pub protocol: ProtocolArg,
     /// Residual bound, m/s per axis and step (0.1 in the paper). Several, comma-separated
     /// (e.g. 0.1,0.5,1,2), need --holdout: one network is trained per bound in
-    /// <run>/bound_<b>/ and the run keeps the narrowest bound's unless a wider one's is clearly
-    /// better on the held-out episodes (docs/residual.md, "Choosing the bound").
+    /// <run>/bound_<b>/ (<run>/<start>_bound_<b>/ with several --start-from) and the run keeps
+    /// the first start mode's narrowest bound unless another candidate's trained network is
+    /// clearly better on the held-out episodes (docs/residual.md, "Choosing the bound").
     #[arg(long, value_delimiter = ',', default_value = "0.1")]
     pub residual_scale: Vec<f32>,
     /// Loss of each rollout step: `mse` (cm², the paper's) or `distance` (cm, the MDE that
@@ -305,17 +308,19 @@ fn floats(v: &serde_json::Value, key: &str) -> Vec<f64> {
         .unwrap_or_default()
 }
 
-/// Trains the residual network and writes the run's files; with several bounds, one network
-/// per bound and the held-out episodes' choice (`crate::train_bounds`).
+/// Trains the residual network and writes the run's files; with several bounds or start modes,
+/// one network per combination and the held-out episodes' choice (`crate::train_choice`).
 pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
-    match args.residual_scale.len() {
-        0 => anyhow::bail!("--residual-scale needs a value"),
-        1 => train_one(args),
-        _ => crate::train_bounds::run(args),
+    match (args.residual_scale.len(), args.start_from.len()) {
+        (0, _) => anyhow::bail!("--residual-scale needs a value"),
+        (_, 0) => anyhow::bail!("--start-from needs a value"),
+        (1, 1) => train_one(args),
+        _ => crate::train_choice::run(args),
     }
 }
 
-/// Trains one network, with the bound `args.residual_scale[0]`.
+/// Trains one network, with the bound `args.residual_scale[0]` and the start mode
+/// `args.start_from[0]`.
 fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
     let t0 = Instant::now();
     // candle's matmul reads the thread count from RAYON_NUM_THREADS and runs on rayon's global
@@ -350,7 +355,7 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
         decay_steps: args.iterations,
         clip: args.clip,
         augment: !args.no_augment,
-        start_from: match args.start_from {
+        start_from: match args.start_from.first().copied().unwrap_or(StartArg::Guided) {
             StartArg::Rollout => StartFrom::Rollout,
             StartArg::Recorded => StartFrom::Recorded,
             StartArg::Guided => StartFrom::Guided,

@@ -20,7 +20,7 @@ mod cmd_render;
 mod cmd_train;
 mod common;
 mod report;
-mod train_bounds;
+mod train_choice;
 
 #[derive(Parser)]
 #[command(name = "cargo xtask", about = "pgrd pipelines", version)]

@@ -1,25 +1,30 @@
-//! `cargo xtask train --residual-scale a,b,… --holdout K`: one network per residual bound, and
-//! the run keeps the one its held-out training episodes prefer.
+//! `cargo xtask train --residual-scale a,b,… [--start-from m,n,…] --holdout K`: one network per
+//! training recipe (residual bound × start mode), and the run keeps the one its held-out training
+//! episodes prefer.
 //!
 //! The paper's bound (0.1 m/s per axis and step) caps what the network can correct, and how much
 //! room an object needs differs by an order of magnitude (`docs/residual.md`, "The bound's
-//! ceiling"); a wider bound also lets the network drift further. So the bound is chosen like a
-//! checkpoint: each candidate is trained in `<run>/bound_<b>/` with held-out selection, and,
-//! going up from the narrowest, a wider bound replaces the choice only when its selected
-//! network is [`residual::clearly_better`] on the same held-out episodes. The val split is never
-//! read.
+//! ceiling"); a wider bound also lets the network drift further. Where training segments start
+//! matters as much, and differently per object (recorded frames help some cables, hurt the
+//! sheets). So the recipe is chosen like a checkpoint: each candidate is trained in its own
+//! directory with held-out selection, and, in the order given (start modes as listed, bounds
+//! increasing within each), a candidate replaces the choice only when its selected network is a
+//! trained one and [`residual::clearly_better`] than the current choice on the same held-out
+//! episodes. The val split is never read.
 
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 use serde::Serialize;
 
-use crate::cmd_train::TrainArgs;
+use crate::cmd_train::{StartArg, TrainArgs};
 use crate::report::write_json;
 
-/// One candidate bound's outcome, in `<run>/train.json` (`bound_choice`).
+/// One candidate recipe's outcome, in `<run>/train.json` (`recipe_choice`).
 #[derive(Clone, Debug, Serialize)]
 struct Candidate {
+    /// Where its training segments start (`--start-from`).
+    start_from: String,
     /// The bound, m/s per axis and step (as written on the command line, not widened from f32).
     bound: f64,
     /// Its run directory.
@@ -44,11 +49,29 @@ fn checked_bounds(bounds: &[f32]) -> anyhow::Result<Vec<f32>> {
     Ok(sorted)
 }
 
-/// Index of the chosen candidate (`per_episode` and `selected_step` in increasing bound order):
-/// the narrowest, replaced by a wider one only when that one is clearly better than the current
+/// Distinct start modes, in the order given.
+fn distinct_starts(starts: &[StartArg]) -> Vec<StartArg> {
+    let mut out: Vec<StartArg> = Vec::with_capacity(starts.len());
+    for s in starts {
+        if !out.contains(s) {
+            out.push(*s);
+        }
+    }
+    out
+}
+
+/// The command-line name of a start mode (`guided-recorded`, …).
+fn start_name(start: StartArg) -> String {
+    clap::ValueEnum::to_possible_value(&start)
+        .map(|v| v.get_name().to_string())
+        .unwrap_or_else(|| format!("{start:?}"))
+}
+
+/// Index of the chosen candidate (`per_episode` and `selected_step` in the candidates' order):
+/// the first, replaced by a later one only when that one is clearly better than the current
 /// choice.
 ///
-/// A wider bound whose selected network is the untrained step-0 one never replaces the choice:
+/// A candidate whose selected network is the untrained step-0 one never replaces the choice:
 /// output layers start scaled to the bound, so every step-0 network is nearly the backbone, and
 /// their held-out errors differ by float rounding (10⁻⁶ cm) that can be consistently signed,
 /// which the one-standard-error rule alone would call clearly better.
@@ -69,37 +92,56 @@ fn copy_atomic(from: &Path, to: &Path) -> anyhow::Result<()> {
     dataset::write_atomic(to, &bytes).with_context(|| format!("writing {}", to.display()))
 }
 
-/// Trains one network per bound of `args.residual_scale` and keeps the chosen one in `args.run`.
+/// Trains one network per start mode of `args.start_from` and bound of `args.residual_scale`,
+/// and keeps the chosen one in `args.run`.
 pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
     anyhow::ensure!(
         args.holdout > 0,
-        "several --residual-scale values need --holdout K: the bound is chosen on held-out \
-         training episodes, never on the val split"
+        "several --residual-scale or --start-from values need --holdout K: the recipe is chosen \
+         on held-out training episodes, never on the val split"
     );
     let bounds = checked_bounds(&args.residual_scale)?;
+    let starts = distinct_starts(&args.start_from);
+    let recipes: Vec<(StartArg, f32)> = starts
+        .iter()
+        .flat_map(|&s| bounds.iter().map(move |&b| (s, b)))
+        .collect();
     let backbone = args.run.join("backbone.json");
     anyhow::ensure!(
         backbone.exists(),
         "{} not found: fit the backbone first (cargo xtask fit)",
         backbone.display()
     );
-    let mut candidates = Vec::with_capacity(bounds.len());
-    for (k, &bound) in bounds.iter().enumerate() {
-        let dir = args.run.join(format!("bound_{bound}"));
+    let mut candidates = Vec::with_capacity(recipes.len());
+    for (k, &(start, bound)) in recipes.iter().enumerate() {
+        // One start mode keeps the directories of the bound-only choice (`bound_<b>`).
+        let dir = match starts.len() {
+            1 => args.run.join(format!("bound_{bound}")),
+            _ => args
+                .run
+                .join(format!("{}_bound_{bound}", start_name(start))),
+        };
         std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
         copy_atomic(&backbone, &dir.join("backbone.json"))?;
         if !args.quiet {
             eprintln!(
-                "bound {bound} m/s ({} of {}) -> {}",
+                "start {}, bound {bound} m/s ({} of {}) -> {}",
+                start_name(start),
                 k + 1,
-                bounds.len(),
+                recipes.len(),
                 dir.display()
             );
         }
         let mut one = args.clone();
         one.residual_scale = vec![bound];
+        one.start_from = vec![start];
         one.run = dir.clone();
-        crate::cmd_train::run(&one).with_context(|| format!("training with bound {bound}"))?;
+        crate::cmd_train::run(&one).with_context(|| {
+            format!(
+                "training with start {} and bound {bound}",
+                start_name(start)
+            )
+        })?;
         let report: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(dir.join("train.json"))?)?;
         let per_episode: Vec<f64> = report["selection"]["best_episode_mde_cm"]
@@ -113,6 +155,7 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
             dir.join("train.json").display()
         );
         candidates.push(Candidate {
+            start_from: start_name(start),
             bound: bound.to_string().parse()?,
             run: dir,
             selected_step: selected_step.unwrap_or(0),
@@ -131,19 +174,27 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
     }
     let mut report: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(chosen.run.join("train.json"))?)?;
-    report["bound_choice"] = serde_json::json!({
-        "rule": "narrowest bound unless a wider one's trained network is clearly better on the held-out episodes",
-        "chosen": chosen.bound,
+    report["recipe_choice"] = serde_json::json!({
+        "rule": "candidates in order (start modes as given, bounds increasing); a later one \
+                 replaces the choice when its trained network is clearly better on the held-out \
+                 episodes",
+        "chosen": { "start_from": chosen.start_from, "bound": chosen.bound },
         "candidates": candidates,
     });
     let report_path = args.run.join("train.json");
     write_json(&report_path, &report)?;
     let summary: Vec<String> = candidates
         .iter()
-        .map(|c| format!("{} m/s {:.3} cm", c.bound, c.heldout_mde_cm))
+        .map(|c| {
+            format!(
+                "{} {} m/s {:.3} cm",
+                c.start_from, c.bound, c.heldout_mde_cm
+            )
+        })
         .collect();
     println!(
-        "bound {} m/s chosen (held-out rollout MDE: {}) -> {}",
+        "{} start, bound {} m/s chosen (held-out rollout MDE: {}) -> {}",
+        chosen.start_from,
         chosen.bound,
         summary.join(", "),
         report_path.display()
@@ -164,6 +215,42 @@ mod tests {
         for bad in [0.0, -0.1, f32::NAN, f32::INFINITY] {
             assert!(checked_bounds(&[0.1, bad]).is_err(), "{bad}");
         }
+    }
+
+    #[test]
+    fn several_recipes_without_held_out_episodes_are_refused() {
+        #[derive(clap::Parser)]
+        struct Cli {
+            #[command(flatten)]
+            train: TrainArgs,
+        }
+        for extra in [
+            ["--start-from", "guided,recorded"],
+            ["--residual-scale", "0.1,1"],
+        ] {
+            let cli = <Cli as clap::Parser>::try_parse_from(
+                ["train", "--data", "no-such-data", "--run", "no-such-run"]
+                    .into_iter()
+                    .chain(extra),
+            )
+            .unwrap();
+            let err = crate::cmd_train::run(&cli.train).unwrap_err().to_string();
+            assert!(err.contains("--holdout"), "{err}");
+        }
+    }
+
+    #[test]
+    fn start_modes_keep_their_order_and_command_line_names() {
+        use StartArg::*;
+        assert_eq!(
+            distinct_starts(&[Recorded, Guided, Recorded, GuidedRecorded]),
+            vec![Recorded, Guided, GuidedRecorded]
+        );
+        let names: Vec<String> = [Guided, Recorded, GuidedRecorded, Rollout]
+            .into_iter()
+            .map(start_name)
+            .collect();
+        assert_eq!(names, ["guided", "recorded", "guided-recorded", "rollout"]);
     }
 
     #[test]
