@@ -383,6 +383,7 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
     let mut base_loss = Vec::new();
     let mut selection: Option<Selection> = None;
     if ckpt.exists() && !args.restart {
+        crate::train_resume::check(&ckpt.with_extension("json"), &model_cfg, &train_cfg)?;
         trainer
             .load_checkpoint(&ckpt)
             .with_context(|| format!("resuming from {}", ckpt.display()))?;

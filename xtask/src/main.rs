@@ -21,6 +21,7 @@ mod cmd_train;
 mod common;
 mod report;
 mod train_choice;
+mod train_resume;
 
 #[derive(Parser)]
 #[command(name = "cargo xtask", about = "pgrd pipelines", version)]
