@@ -11,7 +11,7 @@ use residual::{ModelConfig, TrainConfig};
 
 /// Training settings that must match to resume. `iterations` and `decay_steps` may change (to
 /// extend a run); everything else decides what is learned.
-const TRAIN_KEYS: [&str; 11] = [
+const TRAIN_KEYS: [&str; 12] = [
     "rollout_steps",
     "batch",
     "lr",
@@ -23,6 +23,9 @@ const TRAIN_KEYS: [&str; 11] = [
     "refresh_every",
     "loss",
     "sim_gradient",
+    // The weight average is part of the checkpoint: resuming it with another decay (or
+    // switching it on halfway) would average a different network than the one named.
+    "ema_decay",
 ];
 
 /// An error naming every setting in which `checkpoint_json` (a `train_ckpt.json`) differs from
@@ -107,6 +110,12 @@ mod tests {
         };
         let err = check(&path, &wider, &train).unwrap_err().to_string();
         assert!(err.contains("residual_scale"), "{err}");
+        let averaged = TrainConfig {
+            ema_decay: 0.99,
+            ..train.clone()
+        };
+        let err = check(&path, &model, &averaged).unwrap_err().to_string();
+        assert!(err.contains("ema_decay"), "{err}");
 
         // A checkpoint written before a setting existed is not held to it.
         let mut old: serde_json::Value =
