@@ -140,6 +140,10 @@ pub struct TrainArgs {
     /// velocity (docs/residual.md, "Gripper inputs").
     #[arg(long)]
     pub gripper_inputs: bool,
+    /// Beyond the paper: also feed each particle its height above the ground plane
+    /// (docs/residual.md, "Ground inputs").
+    #[arg(long)]
+    pub ground_inputs: bool,
     /// Where training segments start: `guided` (half from a backbone rollout pulled toward
     /// the recorded frames, half as `rollout`), `rollout` (the model's own states along the
     /// evaluation window, refreshed with the hybrid model every --refresh-every steps),
@@ -275,6 +279,7 @@ fn model_config(args: &TrainArgs) -> ModelConfig {
         },
         residual_scale: args.residual_scale.first().copied().unwrap_or(0.1),
         gripper_inputs: args.gripper_inputs,
+        ground_inputs: args.ground_inputs,
         ..ModelConfig::default()
     }
 }

@@ -8,7 +8,9 @@ use glam::Vec3;
 use rayon::prelude::*;
 use springs::{Actions, Backbone, Scratch, SimError, State};
 
-use crate::model::{GRIPPER_INPUTS, INPUTS, ResidualNet, gripper_inputs};
+use crate::model::{
+    GRIPPER_INPUTS, GROUND_INPUTS, INPUTS, ResidualNet, gripper_inputs, ground_inputs,
+};
 use crate::nn::Pass;
 use crate::rollout::{DIVERGED_M, History};
 use crate::serialize::{Layout, Structure};
@@ -308,6 +310,10 @@ impl<'a> Live<'a> {
         if cfg.gripper_inputs {
             gripper_inputs(&self.x, from, to, dt, cfg.velocity_scale, &mut gripper);
         }
+        let mut ground = Vec::new();
+        if cfg.ground_inputs {
+            ground_inputs(&self.x, self.backbone.config().ground_z, &mut ground);
+        }
         for i in 0..self.n {
             let x = self.x[i];
             for f in [
@@ -325,6 +331,10 @@ impl<'a> Live<'a> {
             if cfg.gripper_inputs {
                 self.feats
                     .extend_from_slice(&gripper[i * GRIPPER_INPUTS..(i + 1) * GRIPPER_INPUTS]);
+            }
+            if cfg.ground_inputs {
+                self.feats
+                    .extend_from_slice(&ground[i * GROUND_INPUTS..(i + 1) * GROUND_INPUTS]);
             }
         }
         self.layout = Some(Layout::new(

@@ -92,6 +92,13 @@ pub struct ModelConfig {
     /// saved before the option existed.
     #[serde(default)]
     pub gripper_inputs: bool,
+    /// Also feed every particle its height above the backbone's ground plane:
+    /// [`GROUND_INPUTS`](crate::GROUND_INPUTS) more channels. The centred positions of the
+    /// paper's inputs do not say where the table is, so a rope lying on it and the same shape
+    /// held in the air look alike. Off in the paper and in configurations saved before the
+    /// option existed.
+    #[serde(default)]
+    pub ground_inputs: bool,
 }
 
 /// How the earlier and predicted positions are presented to the network.
@@ -130,6 +137,7 @@ impl Default for ModelConfig {
             velocity_scale: 2.0,
             inputs: InputConvention::Displacement,
             gripper_inputs: false,
+            ground_inputs: false,
         }
     }
 }
@@ -152,14 +160,17 @@ impl ModelConfig {
     }
 
     /// Input channels per particle: [`INPUTS`](crate::INPUTS), plus
-    /// [`GRIPPER_INPUTS`](crate::GRIPPER_INPUTS) with `gripper_inputs`.
+    /// [`GRIPPER_INPUTS`](crate::GRIPPER_INPUTS) with `gripper_inputs` and
+    /// [`GROUND_INPUTS`](crate::GROUND_INPUTS) with `ground_inputs`.
     pub fn input_dim(&self) -> usize {
-        crate::INPUTS
-            + if self.gripper_inputs {
-                crate::GRIPPER_INPUTS
-            } else {
-                0
-            }
+        let mut dim = crate::INPUTS;
+        if self.gripper_inputs {
+            dim += crate::GRIPPER_INPUTS;
+        }
+        if self.ground_inputs {
+            dim += crate::GROUND_INPUTS;
+        }
+        dim
     }
 
     /// Width of the per-particle feature the encoder produces.
@@ -224,6 +235,9 @@ impl ModelConfig {
         }
         if self.gripper_inputs {
             parts.push("gripper-inputs");
+        }
+        if self.ground_inputs {
+            parts.push("ground-inputs");
         }
         if parts.is_empty() {
             "full".into()

@@ -47,7 +47,7 @@ pub use batch::{JobResult, PredictJob, predict_batch};
 pub use config::{Combine, EncoderKind, InputConvention, ModelConfig, ResidualKind};
 pub use error::{ResidualError, Result};
 pub use loss::{DISTANCE_EPS_CM, TrainLoss};
-pub use model::{GRIPPER_INPUTS, INPUTS, ResidualNet};
+pub use model::{GRIPPER_INPUTS, GROUND_INPUTS, INPUTS, ResidualNet};
 pub use rollout::{History, HybridRollout, RolloutOptions, SimGradient, hybrid_rollout, predict};
 pub use train::{
     BackboneOptionsFn, Sample, StartFrom, StepStats, TrainConfig, TrainSet, Trainer, clearly_better,

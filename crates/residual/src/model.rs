@@ -21,6 +21,26 @@ pub const INPUTS: usize = 24;
 /// from the particle and its velocity (see `docs/residual.md`, Normalisation).
 pub const GRIPPER_INPUTS: usize = 6;
 
+/// Extra channels with [`ModelConfig::ground_inputs`]: the height above the ground plane in
+/// decimetres (clamped to [−1, 10]) and a contact proximity `exp(−|h| / 1 cm)`.
+pub const GROUND_INPUTS: usize = 2;
+
+/// Height (m) beyond which the ground channels read as "far from the ground": the first
+/// channel saturates there, and a backbone without a ground plane reads as this far.
+const GROUND_FAR_M: f32 = 1.0;
+
+/// Per particle at `x` (m), the [`GROUND_INPUTS`] channels for a ground plane at height
+/// `ground_z` (m; `None`: no ground, every particle far from it), appended to `out`. The first
+/// channel tells lying from lifted; the second is near 1 only within a few centimetres of the
+/// plane, where contact and friction act.
+pub(crate) fn ground_inputs(x: &[Vec3], ground_z: Option<f32>, out: &mut Vec<f32>) {
+    for p in x {
+        let h = ground_z.map_or(GROUND_FAR_M, |z| (p.z - z).min(GROUND_FAR_M));
+        out.push((h / 0.1).max(-1.0));
+        out.push((-h.abs() / 0.01).exp());
+    }
+}
+
 /// Per particle at `x` (m): the offset (m) to the nearest gripper closed in `from`, and that
 /// gripper's velocity from `from` to `to` (m/s, times `velocity_scale`), as 6 values appended
 /// to `out`; zeros where no gripper is closed. The network otherwise learns of the action only
@@ -478,7 +498,7 @@ mod tests {
     use glam::Vec3;
     use springs::ActionFrame;
 
-    use super::gripper_inputs;
+    use super::{gripper_inputs, ground_inputs};
 
     #[test]
     fn gripper_inputs_use_the_nearest_closed_gripper() {
@@ -530,5 +550,37 @@ mod tests {
         );
         gripper_inputs(&x, frame(&[], &[]), frame(&[], &[]), 0.1, 2.0, &mut out);
         assert_eq!(out, vec![0.0; 24]);
+    }
+
+    #[test]
+    fn ground_inputs_tell_contact_from_lifted() {
+        let x = [
+            Vec3::new(0.3, 0.0, 0.05),
+            Vec3::new(0.0, 0.0, 0.004),
+            Vec3::new(0.0, 0.0, 2.0),
+            Vec3::new(0.0, 0.0, -0.2),
+        ];
+        let mut out = Vec::new();
+        ground_inputs(&x, Some(0.0), &mut out);
+        let want = [
+            0.5,
+            (-5.0f32).exp(),
+            0.04,
+            (-0.4f32).exp(),
+            10.0,
+            0.0,
+            -1.0,
+            0.0,
+        ];
+        for (got, want) in out.iter().zip(want) {
+            assert!((got - want).abs() < 1e-5, "{out:?}");
+        }
+        // A plane elsewhere moves the heights with it; no plane reads as far above.
+        out.clear();
+        ground_inputs(&x[..1], Some(0.04), &mut out);
+        assert!((out[0] - 0.1).abs() < 1e-5 && (out[1] - (-1.0f32).exp()).abs() < 1e-5);
+        out.clear();
+        ground_inputs(&x[..1], None, &mut out);
+        assert!(out[0] == 10.0 && out[1] < 1e-30, "{out:?}");
     }
 }

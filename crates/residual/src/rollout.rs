@@ -10,7 +10,7 @@ use serde::{Deserialize, Serialize};
 use springs::{Actions, Backbone, SimError, State};
 
 use crate::loss::{TrainLoss, step_loss};
-use crate::model::{GRIPPER_INPUTS, ResidualNet, gripper_inputs};
+use crate::model::{GRIPPER_INPUTS, GROUND_INPUTS, ResidualNet, gripper_inputs, ground_inputs};
 use crate::nn::Pass;
 use crate::serialize::{CURVES, Structure};
 use crate::{ResidualError, ResidualKind, Result};
@@ -361,6 +361,11 @@ fn run(
             let mut g = Vec::with_capacity(n * GRIPPER_INPUTS);
             gripper_inputs(&current, from, to, dt, cfg.velocity_scale, &mut g);
             parts.push(Tensor::from_vec(g, (n, GRIPPER_INPUTS), &dev)?);
+        }
+        if cfg.ground_inputs {
+            let mut g = Vec::with_capacity(n * GROUND_INPUTS);
+            ground_inputs(&current, backbone.config().ground_z, &mut g);
+            parts.push(Tensor::from_vec(g, (n, GROUND_INPUTS), &dev)?);
         }
         let feats = Tensor::cat(&parts, 1)?;
         debug_assert_eq!(feats.dim(1)?, cfg.input_dim());

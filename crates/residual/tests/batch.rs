@@ -118,6 +118,7 @@ fn a_batch_predicts_what_each_rollout_predicts_alone() {
     assert_ne!(a.init.x.len(), c.init.x.len(), "point counts should differ");
     let gripper = ModelConfig {
         gripper_inputs: true,
+        ground_inputs: true,
         ..ModelConfig::tiny()
     };
     for cfg in [ModelConfig::tiny(), ModelConfig::default(), gripper] {
