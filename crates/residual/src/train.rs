@@ -5,7 +5,7 @@ use std::collections::HashMap;
 use std::path::Path;
 
 use candle_core::{Tensor, Var};
-use dataset::{Dataset, Episode, Split};
+use dataset::{Dataset, Episode, Split, Structure};
 use glam::Vec3;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -389,7 +389,16 @@ impl TrainSet {
                     Window { start, steps },
                     &self.scene_cfg,
                 )?;
-                let backbone = if scene.particles() == ep.base.particles() {
+                // A volume's interior is not tracked: the fill at this frame is other
+                // material points than the start frame's, even when it happens to have as
+                // many (1-3 % of the sloth's and teddy's frames), so the start frame's springs
+                // would join the wrong particles. Such a scene gets a backbone of its own.
+                // (Carrying the start frame's interior along with the surface instead, so the
+                // evaluation's backbone could run here, trained worse networks:
+                // docs/residual.md, "Carried interiors".)
+                let fresh_interior =
+                    self.meta.structure == Structure::Volume && scene.particles() > scene.tracked;
+                let backbone = if scene.particles() == ep.base.particles() && !fresh_interior {
                     None
                 } else {
                     Some(scene.backbone(&self.params, &scene.sim_config(), (self.options)())?)

@@ -392,3 +392,33 @@ fn bounded_oracle_spans_backbone_to_truth() {
         assert!(s.oracle_mde_cm(bad, 1).is_err());
     }
 }
+
+/// A recorded start on a filled volume runs in springs built on its own particles: the fill
+/// of another frame is other material points, even when it has as many of them, so the start
+/// frame's backbone would join the wrong particles (docs/residual.md, "Carried interiors").
+#[test]
+fn recorded_starts_on_a_filled_volume_run_in_their_own_springs() {
+    let data = Dataset::open(common::fixture("teddy")).unwrap();
+    let set = TrainSet::new(
+        &data,
+        Split::Train,
+        &springs::SpringParams::reference_rope(),
+        &scene::SceneConfig::default(),
+    )
+    .unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    for _ in 0..150 {
+        let s = set.sample(&mut rng, 3, false).unwrap();
+        let rest = set.backbone(&s).rest_positions();
+        assert_eq!(rest.len(), s.scene.particles());
+        assert!(
+            s.scene.particles() > s.scene.tracked,
+            "the fixture should be filled"
+        );
+        let worst = rest
+            .iter()
+            .zip(&s.scene.init.x)
+            .fold(0f32, |m, (a, b)| m.max(a.distance(*b)));
+        assert!(worst < 1e-6, "springs built elsewhere: {worst} m off");
+    }
+}
