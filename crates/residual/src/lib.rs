@@ -3,8 +3,8 @@
 //! A [`ResidualNet`] predicts, per particle, a bounded velocity residual that is added to the
 //! spring-mass backbone's prediction: `v = v_sim + Δv`, `x = x_sim + Δv dt`. It reads the
 //! current state, two history frames and the backbone's prediction ([`INPUTS`] channels;
-//! [`GRIPPER_INPUTS`] more with [`ModelConfig::gripper_inputs`]), encodes
-//! them with a serialized point transformer (Z-order / Hilbert curves, patch attention,
+//! [`GRIPPER_INPUTS`] more with [`ModelConfig::gripper_inputs`], [`GROUND_INPUTS`] with
+//! [`ModelConfig::ground_inputs`]), encodes them with a serialized point transformer (Z-order / Hilbert curves, patch attention,
 //! grid pooling U-Net; or a PointNet++-style ablation), decodes with Fourier features of the
 //! position, and smooths over time with a per-particle transformer over its last `W` outputs
 //! and a learned gate: `Δv = s ((1 − g) r + g δ)`, `s = 0.1 m/s`.

@@ -172,8 +172,9 @@ pub struct Sample {
     pub scene: Scene,
     /// The history frames (rotated like the scene).
     pub history: History,
-    /// Backbone for this segment when it could not reuse the episode's (interior fill
-    /// differs between frames), else `None`.
+    /// Backbone for this segment when it could not reuse the episode's (a recorded start on
+    /// a filled volume, whose interior is filled afresh, or another particle count), else
+    /// `None`.
     backbone: Option<Backbone>,
     episode: usize,
 }
