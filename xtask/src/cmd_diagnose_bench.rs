@@ -1059,4 +1059,28 @@ mod tests {
         let g = Effects::only_scaled(ObjectKind::Rope, EffectKind::GraspSlip, 2.0);
         assert_eq!(g.grasp_slip.unwrap().slip_force_n, 1.5);
     }
+
+    #[test]
+    fn the_nonlinear_candidate_reaches_every_rungs_compression_ratio() {
+        // Until session 22 the candidate's compression term stopped at 0.1 of the tension
+        // stiffness, while the world's ratio at ×4 is 0.3⁴ ≈ 0.008 on the sloth: the refit
+        // could not express the effect it was asked to find.
+        let params = Candidate::NonlinearElasticity.parameters();
+        let ratio = params
+            .iter()
+            .find(|p| p.name == "compression_ratio")
+            .expect("the candidate has a compression ratio");
+        for object in ObjectKind::ALL {
+            for s in [1.0, 4.0, 16.0, 64.0] {
+                let e = Effects::only_scaled(object, EffectKind::NonlinearElasticity, s);
+                let rho = f64::from(e.nonlinear_elasticity.unwrap().compression_ratio);
+                assert!(
+                    (ratio.lower..=ratio.upper).contains(&rho),
+                    "{object} x{s}: world ratio {rho} outside [{}, {}]",
+                    ratio.lower,
+                    ratio.upper
+                );
+            }
+        }
+    }
 }

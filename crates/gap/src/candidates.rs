@@ -101,7 +101,8 @@ impl Candidate {
             }
             Candidate::NonlinearElasticity => vec![
                 Parameter::log("stiffening_beta", 1.0, 1000.0),
-                Parameter::linear("compression_softening", 0.0, 0.9),
+                // Down to a thousandth: a fabric or a rope barely resists compression.
+                Parameter::log("compression_ratio", 1e-3, 1.0),
             ],
             Candidate::Bending => vec![Parameter::log("bending_relative_stiffness", 1e-3, 1.0)],
             Candidate::Friction => vec![Parameter::linear("static_excess_mu", 0.0, 2.0)],
@@ -134,7 +135,7 @@ impl Candidate {
         match self {
             Candidate::Drag => vec![0.3],
             Candidate::StiffnessHeterogeneity => vec![0.5],
-            Candidate::NonlinearElasticity => vec![30.0, 0.3],
+            Candidate::NonlinearElasticity => vec![30.0, 0.7],
             Candidate::Bending => vec![0.05],
             Candidate::Friction => vec![0.5],
             Candidate::Plasticity => vec![0.02, 5.0],
@@ -152,7 +153,7 @@ impl Candidate {
         match self {
             Candidate::Drag | Candidate::Bending => vec![0.0],
             Candidate::StiffnessHeterogeneity | Candidate::MassDistribution => vec![0.0],
-            Candidate::NonlinearElasticity => vec![0.0, 0.0],
+            Candidate::NonlinearElasticity => vec![0.0, 1.0],
             Candidate::Friction | Candidate::ActuationDelay => vec![0.0],
             Candidate::GravityScale => vec![1.0],
             Candidate::Plasticity => vec![0.02, 0.0],
@@ -172,7 +173,7 @@ impl Candidate {
             }),
             Candidate::NonlinearElasticity => Box::new(StrainStiffening {
                 beta: f(0),
-                gamma: f(1),
+                gamma: 1.0 - f(1),
             }),
             Candidate::Bending => Box::new(BendingSprings::new(f(0))),
             Candidate::Friction => Box::new(StickSlipFriction {

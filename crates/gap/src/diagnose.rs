@@ -742,7 +742,7 @@ mod tests {
         // [stiffness, damping, friction, base drag, candidate's two nonlinear-elasticity values]
         let real = [100.0, 2.0, 0.5, 0.3, 30.0, 0.4];
         let off = effect_switched_off(&real, Candidate::NonlinearElasticity);
-        assert_eq!(off, vec![100.0, 2.0, 0.5, 0.3, 0.0, 0.0]);
+        assert_eq!(off, vec![100.0, 2.0, 0.5, 0.3, 0.0, 1.0]);
         let off = effect_switched_off(&real[..4], Candidate::Drag);
         assert_eq!(off, vec![100.0, 2.0, 0.5, 0.0]);
     }
