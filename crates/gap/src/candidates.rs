@@ -122,10 +122,18 @@ impl Candidate {
             Candidate::MassDistribution => vec![Parameter::linear("log_mass_slope", -2.0, 2.0)],
             Candidate::GravityScale => vec![Parameter::linear("gravity_factor", 0.5, 4.0)],
             Candidate::ExternalField => vec![
-                Parameter::linear("field_x_m_per_s2", -3.0, 3.0),
-                Parameter::linear("field_y_m_per_s2", -3.0, 3.0),
-                Parameter::linear("field_z_m_per_s2", -3.0, 3.0),
-                Parameter::linear("field_gradient_per_s2", -20.0, 20.0),
+                Parameter::linear("field_x_m_per_s2", -5.0, 5.0),
+                Parameter::linear("field_y_m_per_s2", -5.0, 5.0),
+                Parameter::linear("field_z_m_per_s2", -5.0, 5.0),
+                // The gradient as the radial acceleration it gives at the window's radius
+                // (g = a_r / w): a narrow window needs a steep gradient to matter at all.
+                Parameter::linear("field_radial_m_per_s2", -30.0, 30.0),
+                // The field's centre relative to the training data's mean position, and its
+                // window: from a few centimetres (a local source) to metres (a global field).
+                Parameter::linear("field_centre_dx_m", -0.5, 0.5),
+                Parameter::linear("field_centre_dy_m", -0.5, 0.5),
+                Parameter::linear("field_centre_dz_m", -0.5, 0.5),
+                Parameter::log("field_window_m", 0.05, 5.0),
             ],
         }
     }
@@ -143,7 +151,7 @@ impl Candidate {
             Candidate::GraspSlip => vec![1.0, 1.0],
             Candidate::MassDistribution => vec![0.5],
             Candidate::GravityScale => vec![1.2],
-            Candidate::ExternalField => vec![0.5, 0.5, 0.5, -2.0],
+            Candidate::ExternalField => vec![0.5, 0.5, 0.5, -2.0, 0.0, 0.0, 0.0, 1.0],
         }
     }
 
@@ -158,7 +166,7 @@ impl Candidate {
             Candidate::GravityScale => vec![1.0],
             Candidate::Plasticity => vec![0.02, 0.0],
             Candidate::GraspSlip => vec![1e9, 1e12],
-            Candidate::ExternalField => vec![0.0; 4],
+            Candidate::ExternalField => vec![0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],
         }
     }
 
@@ -192,8 +200,9 @@ impl Candidate {
             Candidate::GravityScale => Box::new(GravityScale { factor: f(0) }),
             Candidate::ExternalField => Box::new(ExternalField {
                 uniform: Vec3::new(f(0), f(1), f(2)),
-                gradient: f(3),
-                centre: frame.centre,
+                gradient: f(3) / v.get(7).map_or(1.0, |w| *w as f32),
+                centre: frame.centre + Vec3::new(f(4), f(5), f(6)),
+                width: v.get(7).map_or(1.0, |w| *w as f32),
             }),
         }
     }
@@ -205,7 +214,8 @@ impl Candidate {
 pub struct MaterialFrame {
     /// Coordinate along the principal axis of the reference shape, scaled to [−1, 1].
     pub coordinate: Arc<Vec<f32>>,
-    /// Mean tracked position over the training data, m (the external field's expansion point).
+    /// Mean tracked position over the training data, m (the external-field probe's centre is
+    /// searched around it).
     pub centre: Vec3,
 }
 

@@ -566,17 +566,23 @@ impl Effect for SlippingGrasp {
     }
 }
 
-/// Not a library effect: a generic external acceleration field, first order in position,
-/// `a(x) = a₀ + g (x − x̄)` (m/s²) around a fixed world point `x̄`. It probes whether a
-/// significant, learnable gap remains that no named effect explains.
+/// Not a library effect: a generic external acceleration field, first order in position about a
+/// point `c` and confined to a Gaussian window of radius `w` around it,
+/// `a(x) = (a₀ + g (x − c)) exp(−|x − c|² / 2w²)` (m/s²). It probes whether a significant,
+/// learnable gap remains that no named effect explains. A wide window (`w` of metres) makes it
+/// the plain first-order field about `c`; a narrow one, a force confined to one region of the
+/// workspace (an unmodelled support, an air jet, a field source), which a global first-order
+/// field cannot follow when the object moves through the region and out again.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ExternalField {
-    /// Uniform acceleration a₀, m/s².
+    /// Acceleration a₀ at the centre, m/s².
     pub uniform: Vec3,
     /// Isotropic gradient g, 1/s² (negative: attraction towards `centre`).
     pub gradient: f32,
-    /// Expansion point x̄, m.
+    /// Expansion point and window centre c, m.
     pub centre: Vec3,
+    /// Window radius w, m (> 0).
+    pub width: f32,
 }
 
 impl Effect for ExternalField {
@@ -584,17 +590,28 @@ impl Effect for ExternalField {
         "external-field"
     }
     fn setup(&mut self, _model: &mut ModelSetup<'_>) -> Result<(), SimError> {
-        let finite =
-            self.uniform.is_finite() && self.gradient.is_finite() && self.centre.is_finite();
-        if finite {
-            Ok(())
-        } else {
+        let finite = self.uniform.is_finite()
+            && self.gradient.is_finite()
+            && self.centre.is_finite()
+            && self.width.is_finite();
+        if !finite {
             Err(bad(self.name(), "non-finite field".into()))
+        } else if self.width <= 0.0 {
+            Err(bad(
+                self.name(),
+                format!("window radius {} m <= 0", self.width),
+            ))
+        } else {
+            Ok(())
         }
     }
     fn stability(&self, backbone: &Backbone, row: &mut [f32], _damping: &mut [f32]) {
+        // Bound on the field's spatial derivative: |g| (1 + 2/e) + |a₀| / (w √e), the maxima
+        // of the window's own slope terms.
+        let stiffness = self.gradient.abs() * (1.0 + 2.0 / std::f32::consts::E)
+            + self.uniform.length() / (self.width * std::f32::consts::E.sqrt());
         for (r, m) in row.iter_mut().zip(backbone.masses()) {
-            *r += self.gradient.abs() * m;
+            *r += stiffness * m;
         }
     }
     fn add_forces(
@@ -606,8 +623,11 @@ impl Effect for ExternalField {
     ) {
         let a0 = Vec3A::from(self.uniform);
         let c = Vec3A::from(self.centre);
+        let inv = 1.0 / (2.0 * self.width * self.width);
         for ((f, x), m) in force.iter_mut().zip(ctx.x).zip(ctx.backbone.masses()) {
-            *f += (a0 + (*x - c) * self.gradient) * *m;
+            let r = *x - c;
+            let window = (-r.length_squared() * inv).exp();
+            *f += (a0 + r * self.gradient) * (window * *m);
         }
     }
 }

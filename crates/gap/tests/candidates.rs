@@ -114,6 +114,27 @@ fn every_candidate_changes_the_rollout_and_vanishes_at_neutral() {
 }
 
 #[test]
+fn the_probes_window_confines_its_field() {
+    // Frame centre (0.1, 0.02, 0.05) m; the strip spans x in [-0.45, 0.22] m over the run.
+    let field = |dx: f64, window: f64| {
+        vec![
+            0.0, 0.0, 2.0, 0.0, dx, 0.0, 0.0, window, // a0 = +2 m/s² up, no gradient
+        ]
+    };
+    let plain = roll(None);
+    let wide = roll(Some((Candidate::ExternalField, field(0.0, 5.0))));
+    let near = roll(Some((Candidate::ExternalField, field(0.0, 0.1))));
+    let far = roll(Some((Candidate::ExternalField, field(0.5, 0.05))));
+    // 0.5 m away with a 5 cm window the field is e^-50 of its strength: nothing moves.
+    assert!(max_diff(&plain, &far) < 1e-6, "{}", max_diff(&plain, &far));
+    // On the strip it acts, and a wide window (the whole strip at full strength) more than a
+    // narrow one.
+    let (n, w) = (max_diff(&plain, &near), max_diff(&plain, &wide));
+    assert!(n > 1e-3, "{n}");
+    assert!(w > n, "wide {w} narrow {n}");
+}
+
+#[test]
 fn material_axis_follows_particle_order() {
     let x: Vec<Vec3> = (0..10)
         .map(|i| Vec3::new(-0.1 * i as f32, 0.0, 0.0))
@@ -139,6 +160,10 @@ fn bad_effect_parameters_are_errors_not_panics() {
         (Candidate::NonlinearElasticity, vec![10.0, 1.5]),
         (Candidate::GraspSlip, vec![0.0, 1.0]),
         (Candidate::ActuationDelay, vec![-1.0]),
+        (
+            Candidate::ExternalField,
+            vec![0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+        ),
     ] {
         let opts = BackboneOptions {
             masses: None,
