@@ -198,12 +198,15 @@ impl Candidate {
                 material: frame.coordinate.clone(),
             }),
             Candidate::GravityScale => Box::new(GravityScale { factor: f(0) }),
-            Candidate::ExternalField => Box::new(ExternalField {
-                uniform: Vec3::new(f(0), f(1), f(2)),
-                gradient: f(3) / v.get(7).map_or(1.0, |w| *w as f32),
-                centre: frame.centre + Vec3::new(f(4), f(5), f(6)),
-                width: v.get(7).map_or(1.0, |w| *w as f32),
-            }),
+            Candidate::ExternalField => {
+                let width = v.get(7).map_or(1.0, |w| *w as f32);
+                Box::new(ExternalField {
+                    uniform: Vec3::new(f(0), f(1), f(2)),
+                    gradient: f(3) / width,
+                    centre: frame.centre + Vec3::new(f(4), f(5), f(6)),
+                    width,
+                })
+            }
         }
     }
 }

@@ -115,7 +115,8 @@ fn every_candidate_changes_the_rollout_and_vanishes_at_neutral() {
 
 #[test]
 fn the_probes_window_confines_its_field() {
-    // Frame centre (0.1, 0.02, 0.05) m; the strip spans x in [-0.45, 0.22] m over the run.
+    // Frame centre (0.1, 0.02, 0.05) m; the strip starts at x in [0, 0.22] m and is dragged
+    // towards -x.
     let field = |dx: f64, window: f64| {
         vec![
             0.0, 0.0, 2.0, 0.0, dx, 0.0, 0.0, window, // a0 = +2 m/s² up, no gradient
@@ -125,7 +126,8 @@ fn the_probes_window_confines_its_field() {
     let wide = roll(Some((Candidate::ExternalField, field(0.0, 5.0))));
     let near = roll(Some((Candidate::ExternalField, field(0.0, 0.1))));
     let far = roll(Some((Candidate::ExternalField, field(0.5, 0.05))));
-    // 0.5 m away with a 5 cm window the field is e^-50 of its strength: nothing moves.
+    // Centred 0.5 m along +x from the frame centre, at least 0.38 m from the strip, a 5 cm
+    // window leaves less than e^-28 of the field there: nothing moves.
     assert!(max_diff(&plain, &far) < 1e-6, "{}", max_diff(&plain, &far));
     // On the strip it acts, and a wide window (the whole strip at full strength) more than a
     // narrow one.
