@@ -48,7 +48,8 @@ pub enum CasePlan {
     Visible,
 }
 
-/// The effects (world names, `magnet` included) each object's recorded motions expose it to,
+/// The effects (world names, the out-of-library ones included) each object's recorded motions
+/// expose it to,
 /// fixed from the world's default effects and motions (docs/world.md) before any bench run
 /// used it: friction needs an object that slides on the table (not the hanging paper, flag or
 /// duster), grasp slip a grasped one (not the pushed teddy), drag a light object with a large
@@ -63,6 +64,7 @@ pub fn relevant_cases(object: ObjectKind) -> &'static [&'static str] {
             "actuation-delay",
             "grasp-slip",
             "magnet",
+            "rotating-frame",
         ],
         ObjectKind::Paper => &[
             "drag",
@@ -71,8 +73,14 @@ pub fn relevant_cases(object: ObjectKind) -> &'static [&'static str] {
             "actuation-delay",
             "grasp-slip",
             "magnet",
+            "rotating-frame",
         ],
-        ObjectKind::Flag => &["drag", "nonlinear-elasticity", "actuation-delay"],
+        ObjectKind::Flag => &[
+            "drag",
+            "nonlinear-elasticity",
+            "actuation-delay",
+            "rotating-frame",
+        ],
         ObjectKind::Sloth => &[
             "stiffness-heterogeneity",
             "nonlinear-elasticity",
@@ -81,18 +89,21 @@ pub fn relevant_cases(object: ObjectKind) -> &'static [&'static str] {
             "grasp-slip",
             "mass-distribution",
             "magnet",
+            "rotating-frame",
         ],
         ObjectKind::Duster => &[
             "drag",
             "stiffness-heterogeneity",
             "bending",
             "mass-distribution",
+            "rotating-frame",
         ],
         ObjectKind::Teddy => &[
             "stiffness-heterogeneity",
             "nonlinear-elasticity",
             "friction",
             "mass-distribution",
+            "rotating-frame",
         ],
     }
 }
@@ -106,7 +117,8 @@ pub struct DiagnoseBenchArgs {
     /// Objects to generate (comma-separated).
     #[arg(long, default_value = "rope,paper,sloth")]
     pub objects: String,
-    /// Cases: comma-separated world effect names, `none` and `magnet` (default: all).
+    /// Cases: comma-separated world effect names (the out-of-library `magnet` and
+    /// `rotating-frame` included) and `none` (default: all).
     #[arg(long)]
     pub cases: Option<String>,
     /// Which of those cases run on which object: every case on every object, or on each
@@ -174,7 +186,7 @@ pub struct DiagnoseBenchArgs {
     #[arg(long, default_value_t = 0.0)]
     pub network_minutes: f64,
     /// Cases that get a network when `--network-minutes` > 0 (comma-separated, as `--cases`).
-    #[arg(long, default_value = "none,magnet")]
+    #[arg(long, default_value = "none,magnet,rotating-frame")]
     pub network_cases: String,
     /// Where generated datasets and reports go.
     #[arg(long, default_value = "target/diagnose-bench")]
@@ -236,7 +248,7 @@ pub struct Rung {
 pub struct BenchCase {
     /// Object.
     pub object: String,
-    /// The effect switched on in the data (`none` and `magnet` included).
+    /// The effect switched on in the data (`none` and the out-of-library effects included).
     pub truth: String,
     /// `none`, `in-library`, `in-base` (the withheld effect is one of the object's base
     /// effects, so the model already has it: expected `none`) or `out-of-library`.
@@ -259,9 +271,10 @@ pub struct BenchCase {
     pub mde_without_effect_cm: f64,
     /// `mde_before_cm − mde_without_effect_cm`: the effect-attributable gap, cm.
     pub attributable_gap_cm: f64,
-    /// Held-out MDE with the true effect's candidate refitted (the probe's for `magnet`), cm.
+    /// Held-out MDE with the true effect's candidate refitted (the probe's for an
+    /// out-of-library effect), cm.
     pub mde_after_cm: Option<f64>,
-    /// Shrinkage of the true effect's candidate (the probe's for `magnet`).
+    /// Shrinkage of the true effect's candidate (the probe's for an out-of-library effect).
     pub shrinkage: Option<f64>,
     /// Its 95% bootstrap interval.
     pub ci95: Option<[f64; 2]>,
@@ -755,15 +768,16 @@ pub fn run_bench(args: &DiagnoseBenchArgs) -> anyhow::Result<BenchSummary> {
                 &format!("{object}, {truth} ×{scale}"),
             )?;
             let in_base = base.iter().any(|b| b.effect.name() == truth);
+            let out_of_library = truth.parse::<EffectKind>().is_ok_and(|k| !k.in_library());
             let (class, expected) = match truth.as_str() {
                 "none" => ("none", "none".to_string()),
-                "magnet" => ("out-of-library", "unknown".to_string()),
+                _ if out_of_library => ("out-of-library", "unknown".to_string()),
                 _ if in_base => ("in-base", "none".to_string()),
                 t => ("in-library", t.to_string()),
             };
             let before = d.control.heldout_mde_cm;
             let gap = before - e0;
-            let truth_entry = if truth == "magnet" {
+            let truth_entry = if out_of_library {
                 d.probe.as_ref()
             } else {
                 d.ranking.iter().find(|r| &r.effect == truth)

@@ -111,6 +111,7 @@ fn every_candidate_changes_the_rollout_and_vanishes_at_neutral() {
         assert_eq!(Candidate::parse(c.name()).unwrap(), c);
     }
     assert!(Candidate::parse("magnet").is_err());
+    assert!(Candidate::parse("rotating-frame").is_err());
 }
 
 #[test]

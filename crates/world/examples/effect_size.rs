@@ -5,8 +5,9 @@
 //! episode). An effect that barely moves the object cannot be diagnosed from its data,
 //! whatever the diagnosis does.
 //!
-//! `cargo run --release -p pgrd-world --example effect_size -- [objects] [scales] [episodes]`
-//! e.g. `-- rope,paper,sloth 1,4,16,64 8`.
+//! `cargo run --release -p pgrd-world --example effect_size -- [objects] [scales] [episodes]
+//! [effects]` e.g. `-- rope,paper,sloth 1,4,16,64 8 magnet,rotating-frame` (default: every
+//! effect).
 
 use world::{EffectKind, Effects, GenConfig, ObjectKind};
 
@@ -30,9 +31,13 @@ fn main() -> anyhow::Result<()> {
         .map(str::parse)
         .collect::<Result<_, _>>()?;
     let episodes: usize = args.get(2).map_or(Ok(8), |s| s.parse())?;
+    let kinds: Vec<EffectKind> = match args.get(3) {
+        Some(list) => list.split(',').map(str::parse).collect::<Result<_, _>>()?,
+        None => EffectKind::ALL.to_vec(),
+    };
     for object in objects.split(',') {
         let object: ObjectKind = object.parse()?;
-        for kind in EffectKind::ALL {
+        for &kind in &kinds {
             let row: Vec<String> = scales
                 .iter()
                 .map(|&s| {

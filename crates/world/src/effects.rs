@@ -33,11 +33,14 @@ pub enum EffectKind {
     MassDistribution,
     /// Attraction towards a fixed point (out of the diagnosis library).
     Magnet,
+    /// The lab turns about a vertical axis and records in its own frame: Coriolis and
+    /// centrifugal accelerations (out of the diagnosis library).
+    RotatingFrame,
 }
 
 impl EffectKind {
     /// All effects, the nine library effects first.
-    pub const ALL: [EffectKind; 10] = [
+    pub const ALL: [EffectKind; 11] = [
         EffectKind::Drag,
         EffectKind::StiffnessHeterogeneity,
         EffectKind::NonlinearElasticity,
@@ -48,6 +51,7 @@ impl EffectKind {
         EffectKind::GraspSlip,
         EffectKind::MassDistribution,
         EffectKind::Magnet,
+        EffectKind::RotatingFrame,
     ];
 
     /// The effect's name.
@@ -63,12 +67,14 @@ impl EffectKind {
             EffectKind::GraspSlip => "grasp-slip",
             EffectKind::MassDistribution => "mass-distribution",
             EffectKind::Magnet => "magnet",
+            EffectKind::RotatingFrame => "rotating-frame",
         }
     }
 
-    /// Whether the effect belongs to the diagnosis library (all but [`EffectKind::Magnet`]).
+    /// Whether the effect belongs to the diagnosis library (all but [`EffectKind::Magnet`] and
+    /// [`EffectKind::RotatingFrame`]).
     pub fn in_library(self) -> bool {
-        self != EffectKind::Magnet
+        !matches!(self, EffectKind::Magnet | EffectKind::RotatingFrame)
     }
 }
 
@@ -213,6 +219,33 @@ pub struct Magnet {
     pub falloff_radius_m: f32,
 }
 
+/// Out of the diagnosis library: the lab (table, robot and cameras) turns steadily about a
+/// vertical axis and everything is recorded in its own frame, a turntable or a turning mobile
+/// base. Every free particle feels the Coriolis acceleration `−2 Ω ẑ × v` (sideways to its
+/// velocity, doing no work) and the centrifugal `Ω² ρ` (ρ: its horizontal offset from the
+/// axis). No candidate models a force that depends on the velocity's direction like this,
+/// and the diagnosis' probe is a position field only: a second `unknown` test, independent
+/// of the probe's form (added after the magnet, whose pull resembles the probe's).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RotatingFrame {
+    /// Angular velocity Ω about +z, rad/s (positive: anticlockwise seen from above).
+    pub angular_velocity_rad_s: f32,
+    /// Where the axis meets the table, (x, y) in m.
+    pub axis_m: [f32; 2],
+}
+
+/// The frame's default rate, rad/s (about 14 turns a minute: a slow turntable).
+const DEFAULT_FRAME_RATE_RAD_S: f32 = 1.5;
+
+/// The default axis, (x, y) in m: beside the workspace rather than through it, so the
+/// centrifugal part is not symmetric about the object.
+const DEFAULT_FRAME_AXIS_M: [f32; 2] = [-0.3, -0.3];
+
+/// Largest |Ω| the world accepts, rad/s: at 0.35 m from the axis the centrifugal
+/// acceleration is then 5 g.
+pub const MAX_FRAME_RATE_RAD_S: f32 = 12.0;
+
 /// Which effects are on, with their parameters (`None`: off).
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case", deny_unknown_fields)]
@@ -247,6 +280,9 @@ pub struct Effects {
     /// See [`Magnet`].
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub magnet: Option<Magnet>,
+    /// See [`RotatingFrame`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rotating_frame: Option<RotatingFrame>,
 }
 
 /// The effects each object has on by default, and why (see `docs/world.md`).
@@ -300,7 +336,8 @@ impl Effects {
     /// coefficients × s; stiffness and mass contrasts ^ s; stiffening strain ÷ s and
     /// compression ratio ^ s; bending rigidity × s; static-minus-kinetic friction × s; yield
     /// strain and flow time ÷ s; actuation lag × s; grasp stiffness and slip force ÷ s; magnet
-    /// acceleration × s. Clamped to the world's ranges.
+    /// acceleration × s; the frame's rate × √s (its centrifugal acceleration × s). Clamped to
+    /// the world's ranges.
     pub fn only_scaled(object: ObjectKind, kind: EffectKind, s: f32) -> Self {
         let mut e = Effects::only(object, kind);
         if let Some(d) = &mut e.drag {
@@ -337,6 +374,10 @@ impl Effects {
         }
         if let Some(m) = &mut e.magnet {
             m.peak_acceleration_m_s2 = (m.peak_acceleration_m_s2 * s).min(100.0);
+        }
+        if let Some(r) = &mut e.rotating_frame {
+            r.angular_velocity_rad_s = (r.angular_velocity_rad_s * s.max(0.0).sqrt())
+                .clamp(-MAX_FRAME_RATE_RAD_S, MAX_FRAME_RATE_RAD_S);
         }
         e
     }
@@ -487,6 +528,12 @@ impl Effects {
                     falloff_radius_m: 0.12,
                 });
             }
+            EffectKind::RotatingFrame => {
+                self.rotating_frame = Some(RotatingFrame {
+                    angular_velocity_rad_s: DEFAULT_FRAME_RATE_RAD_S,
+                    axis_m: DEFAULT_FRAME_AXIS_M,
+                });
+            }
         }
     }
 
@@ -503,6 +550,7 @@ impl Effects {
             EffectKind::GraspSlip => self.grasp_slip = None,
             EffectKind::MassDistribution => self.mass_distribution = None,
             EffectKind::Magnet => self.magnet = None,
+            EffectKind::RotatingFrame => self.rotating_frame = None,
         }
     }
 
@@ -519,6 +567,7 @@ impl Effects {
             EffectKind::GraspSlip => self.grasp_slip.is_some(),
             EffectKind::MassDistribution => self.mass_distribution.is_some(),
             EffectKind::Magnet => self.magnet.is_some(),
+            EffectKind::RotatingFrame => self.rotating_frame.is_some(),
         }
     }
 
@@ -649,6 +698,19 @@ impl Effects {
                 "magnet",
                 pos(m.falloff_radius_m),
                 "falloff radius must be > 0 m",
+            )?;
+        }
+        if let Some(r) = &self.rotating_frame {
+            check(
+                "rotating-frame",
+                r.angular_velocity_rad_s.is_finite()
+                    && r.angular_velocity_rad_s.abs() <= MAX_FRAME_RATE_RAD_S,
+                "angular velocity must be in [-12, 12] rad/s",
+            )?;
+            check(
+                "rotating-frame",
+                r.axis_m.iter().all(|c| c.is_finite()),
+                "axis must be finite",
             )?;
         }
         Ok(())

@@ -9,7 +9,7 @@
 //!   curvature stencils, position-level contact and friction ([`Lab`] gives direct access);
 //! - **switchable effects** ([`Effects`], [`EffectKind`]): drag, stiffness heterogeneity,
 //!   nonlinear elasticity, bending, stick-slip friction, plasticity, actuation delay, grasp slip,
-//!   mass distribution, and the out-of-library magnet;
+//!   mass distribution, and the out-of-library magnet and rotating frame;
 //! - **an observation model** ([`Observation`]): tracking noise, slow drift, occlusion.
 //!
 //! [`generate`] builds a dataset in memory from a [`GenConfig`]; [`GeneratedDataset::write`]
@@ -50,7 +50,8 @@ pub use build::Resolution;
 pub use displacement::effect_displacement_m;
 pub use effects::{
     ActuationDelay, Bending, Drag, EffectKind, Effects, Friction, GraspSlip, Magnet,
-    MassDistribution, NonlinearElasticity, Plasticity, StiffnessHeterogeneity, default_kinds,
+    MassDistribution, NonlinearElasticity, Plasticity, RotatingFrame, StiffnessHeterogeneity,
+    default_kinds,
 };
 pub use error::Error;
 pub use generate::{

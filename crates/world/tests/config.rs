@@ -31,7 +31,7 @@ fn names_parse_and_unknown_names_are_errors() {
         default_kinds(ObjectKind::Rope)
     );
     assert!(Observation::parse("perfect").is_err());
-    // Every effect appears in some object's defaults, except the out-of-library magnet.
+    // Every effect appears in some object's defaults, except the out-of-library ones.
     for k in EffectKind::ALL {
         let used = ObjectKind::ALL
             .iter()
