@@ -144,6 +144,10 @@ pub struct TrainArgs {
     /// (docs/residual.md, "Ground inputs").
     #[arg(long)]
     pub ground_inputs: bool,
+    /// Beyond the paper: also feed each particle its position in the backbone's rest shape,
+    /// a material coordinate (docs/residual.md, "Rest inputs").
+    #[arg(long)]
+    pub rest_inputs: bool,
     /// Where training segments start: `guided` (half from a backbone rollout pulled toward
     /// the recorded frames, half as `rollout`), `rollout` (the model's own states along the
     /// evaluation window, refreshed with the hybrid model every --refresh-every steps),
@@ -280,6 +284,7 @@ fn model_config(args: &TrainArgs) -> ModelConfig {
         residual_scale: args.residual_scale.first().copied().unwrap_or(0.1),
         gripper_inputs: args.gripper_inputs,
         ground_inputs: args.ground_inputs,
+        rest_inputs: args.rest_inputs,
         ..ModelConfig::default()
     }
 }

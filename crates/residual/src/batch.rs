@@ -9,7 +9,8 @@ use rayon::prelude::*;
 use springs::{Actions, Backbone, Scratch, SimError, State};
 
 use crate::model::{
-    GRIPPER_INPUTS, GROUND_INPUTS, INPUTS, ResidualNet, gripper_inputs, ground_inputs,
+    GRIPPER_INPUTS, GROUND_INPUTS, INPUTS, REST_INPUTS, ResidualNet, gripper_inputs, ground_inputs,
+    rest_inputs,
 };
 use crate::nn::Pass;
 use crate::rollout::{DIVERGED_M, History};
@@ -314,6 +315,10 @@ impl<'a> Live<'a> {
         if cfg.ground_inputs {
             ground_inputs(&self.x, self.backbone.config().ground_z, &mut ground);
         }
+        let mut rest = Vec::new();
+        if cfg.rest_inputs {
+            rest_inputs(self.backbone.rest_positions(), &mut rest);
+        }
         for i in 0..self.n {
             let x = self.x[i];
             for f in [
@@ -335,6 +340,10 @@ impl<'a> Live<'a> {
             if cfg.ground_inputs {
                 self.feats
                     .extend_from_slice(&ground[i * GROUND_INPUTS..(i + 1) * GROUND_INPUTS]);
+            }
+            if cfg.rest_inputs {
+                self.feats
+                    .extend_from_slice(&rest[i * REST_INPUTS..(i + 1) * REST_INPUTS]);
             }
         }
         self.layout = Some(Layout::new(

@@ -99,6 +99,15 @@ pub struct ModelConfig {
     /// option existed.
     #[serde(default)]
     pub ground_inputs: bool,
+    /// Also feed every particle its rest position in the backbone's rest shape, centred on
+    /// the rest shape's centroid (m): [`REST_INPUTS`](crate::REST_INPUTS) more channels, a
+    /// material coordinate that names the particle (a limb's tip, the body's middle) wherever
+    /// the object is and however it is deformed. The paper's inputs are all current state, so
+    /// a network must infer from the shape which part a particle belongs to. Not rotated by the
+    /// augmentation (it is a label, not a direction). Off in the paper and in configurations
+    /// saved before the option existed.
+    #[serde(default)]
+    pub rest_inputs: bool,
 }
 
 /// How the earlier and predicted positions are presented to the network.
@@ -138,6 +147,7 @@ impl Default for ModelConfig {
             inputs: InputConvention::Displacement,
             gripper_inputs: false,
             ground_inputs: false,
+            rest_inputs: false,
         }
     }
 }
@@ -161,7 +171,8 @@ impl ModelConfig {
 
     /// Input channels per particle: [`INPUTS`](crate::INPUTS), plus
     /// [`GRIPPER_INPUTS`](crate::GRIPPER_INPUTS) with `gripper_inputs` and
-    /// [`GROUND_INPUTS`](crate::GROUND_INPUTS) with `ground_inputs`.
+    /// [`GROUND_INPUTS`](crate::GROUND_INPUTS) with `ground_inputs` and
+    /// [`REST_INPUTS`](crate::REST_INPUTS) with `rest_inputs`.
     pub fn input_dim(&self) -> usize {
         let mut dim = crate::INPUTS;
         if self.gripper_inputs {
@@ -169,6 +180,9 @@ impl ModelConfig {
         }
         if self.ground_inputs {
             dim += crate::GROUND_INPUTS;
+        }
+        if self.rest_inputs {
+            dim += crate::REST_INPUTS;
         }
         dim
     }
@@ -238,6 +252,9 @@ impl ModelConfig {
         }
         if self.ground_inputs {
             parts.push("ground-inputs");
+        }
+        if self.rest_inputs {
+            parts.push("rest-inputs");
         }
         if parts.is_empty() {
             "full".into()

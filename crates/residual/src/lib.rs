@@ -4,7 +4,7 @@
 //! spring-mass backbone's prediction: `v = v_sim + Δv`, `x = x_sim + Δv dt`. It reads the
 //! current state, two history frames and the backbone's prediction ([`INPUTS`] channels;
 //! [`GRIPPER_INPUTS`] more with [`ModelConfig::gripper_inputs`], [`GROUND_INPUTS`] with
-//! [`ModelConfig::ground_inputs`]), encodes them with a serialized point transformer (Z-order / Hilbert curves, patch attention,
+//! [`ModelConfig::ground_inputs`], [`REST_INPUTS`] with [`ModelConfig::rest_inputs`]), encodes them with a serialized point transformer (Z-order / Hilbert curves, patch attention,
 //! grid pooling U-Net; or a PointNet++-style ablation), decodes with Fourier features of the
 //! position, and smooths over time with a per-particle transformer over its last `W` outputs
 //! and a learned gate: `Δv = s ((1 − g) r + g δ)`, `s = 0.1 m/s`.
@@ -47,7 +47,7 @@ pub use batch::{JobResult, PredictJob, predict_batch};
 pub use config::{Combine, EncoderKind, InputConvention, ModelConfig, ResidualKind};
 pub use error::{ResidualError, Result};
 pub use loss::{DISTANCE_EPS_CM, TrainLoss};
-pub use model::{GRIPPER_INPUTS, GROUND_INPUTS, INPUTS, ResidualNet};
+pub use model::{GRIPPER_INPUTS, GROUND_INPUTS, INPUTS, REST_INPUTS, ResidualNet};
 pub use rollout::{History, HybridRollout, RolloutOptions, SimGradient, hybrid_rollout, predict};
 pub use train::{
     BackboneOptionsFn, Sample, StartFrom, StepStats, TrainConfig, TrainSet, Trainer, clearly_better,

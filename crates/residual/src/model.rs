@@ -25,6 +25,19 @@ pub const GRIPPER_INPUTS: usize = 6;
 /// decimetres (clamped to [−1, 10]) and a contact proximity `exp(−|h| / 1 cm)`.
 pub const GROUND_INPUTS: usize = 2;
 
+/// Extra channels with [`ModelConfig::rest_inputs`]: the particle's rest position, centred on
+/// the rest shape's centroid, m.
+pub const REST_INPUTS: usize = 3;
+
+/// Per particle, the [`REST_INPUTS`] channels: its position in the rest shape `rest` (m)
+/// relative to the rest shape's centroid, appended to `out`.
+pub(crate) fn rest_inputs(rest: &[Vec3], out: &mut Vec<f32>) {
+    let centroid = rest.iter().sum::<Vec3>() / rest.len().max(1) as f32;
+    for p in rest {
+        out.extend((*p - centroid).to_array());
+    }
+}
+
 /// Height (m) beyond which the ground channels read as "far from the ground": the first
 /// channel saturates there, and a backbone without a ground plane reads as this far.
 const GROUND_FAR_M: f32 = 1.0;
@@ -498,7 +511,33 @@ mod tests {
     use glam::Vec3;
     use springs::ActionFrame;
 
-    use super::{gripper_inputs, ground_inputs};
+    use super::{gripper_inputs, ground_inputs, rest_inputs};
+
+    #[test]
+    fn rest_inputs_are_the_rest_shape_about_its_centroid() {
+        let rest = [
+            Vec3::new(1.0, 2.0, 0.0),
+            Vec3::new(1.2, 2.0, 0.0),
+            Vec3::new(1.1, 2.3, 0.3),
+        ];
+        let mut out = Vec::new();
+        rest_inputs(&rest, &mut out);
+        assert_eq!(out.len(), 9);
+        let expect = [-0.1, -0.1, -0.1, 0.1, -0.1, -0.1, 0.0, 0.2, 0.2];
+        for (o, e) in out.iter().zip(expect) {
+            assert!((o - e).abs() < 1e-6, "{out:?}");
+        }
+        // Where the rest shape sat does not matter, only the particle's place in it.
+        let moved: Vec<Vec3> = rest
+            .iter()
+            .map(|p| *p + Vec3::new(-3.0, 0.5, 1.0))
+            .collect();
+        let mut again = Vec::new();
+        rest_inputs(&moved, &mut again);
+        for (a, b) in out.iter().zip(&again) {
+            assert!((a - b).abs() < 1e-5);
+        }
+    }
 
     #[test]
     fn gripper_inputs_use_the_nearest_closed_gripper() {

@@ -10,7 +10,10 @@ use serde::{Deserialize, Serialize};
 use springs::{Actions, Backbone, SimError, State};
 
 use crate::loss::{TrainLoss, step_loss};
-use crate::model::{GRIPPER_INPUTS, GROUND_INPUTS, ResidualNet, gripper_inputs, ground_inputs};
+use crate::model::{
+    GRIPPER_INPUTS, GROUND_INPUTS, REST_INPUTS, ResidualNet, gripper_inputs, ground_inputs,
+    rest_inputs,
+};
 use crate::nn::Pass;
 use crate::serialize::{CURVES, Structure};
 use crate::{ResidualError, ResidualKind, Result};
@@ -366,6 +369,11 @@ fn run(
             let mut g = Vec::with_capacity(n * GROUND_INPUTS);
             ground_inputs(&current, backbone.config().ground_z, &mut g);
             parts.push(Tensor::from_vec(g, (n, GROUND_INPUTS), &dev)?);
+        }
+        if cfg.rest_inputs {
+            let mut r = Vec::with_capacity(n * REST_INPUTS);
+            rest_inputs(backbone.rest_positions(), &mut r);
+            parts.push(Tensor::from_vec(r, (n, REST_INPUTS), &dev)?);
         }
         let feats = Tensor::cat(&parts, 1)?;
         debug_assert_eq!(feats.dim(1)?, cfg.input_dim());

@@ -119,6 +119,7 @@ fn a_batch_predicts_what_each_rollout_predicts_alone() {
     let gripper = ModelConfig {
         gripper_inputs: true,
         ground_inputs: true,
+        rest_inputs: true,
         ..ModelConfig::tiny()
     };
     for cfg in [ModelConfig::tiny(), ModelConfig::default(), gripper] {

@@ -64,6 +64,7 @@ fn every_parameter_gets_a_gradient_in_the_ablations() {
     grads_reach_every_parameter(&ModelConfig {
         gripper_inputs: true,
         ground_inputs: true,
+        rest_inputs: true,
         ..t
     });
 }
