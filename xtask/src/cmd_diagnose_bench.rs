@@ -185,9 +185,10 @@ pub struct DiagnoseBenchArgs {
     /// significantly.
     #[arg(long, default_value_t = 0.0)]
     pub network_minutes: f64,
-    /// Cases that get a network when `--network-minutes` > 0 (comma-separated, as `--cases`).
-    #[arg(long, default_value = "none,magnet,rotating-frame")]
-    pub network_cases: String,
+    /// Cases that get a network when `--network-minutes` > 0 (comma-separated, as `--cases`;
+    /// default: `none` and the out-of-library effects among the bench's cases).
+    #[arg(long)]
+    pub network_cases: Option<String>,
     /// Where generated datasets and reports go.
     #[arg(long, default_value = "target/diagnose-bench")]
     pub work: PathBuf,
@@ -644,6 +645,29 @@ fn share(cases: &[&BenchCase]) -> f64 {
 }
 
 /// Runs the bench (see the module documentation).
+/// The cases that get a residual network: `--network-cases`, or by default `none` and the
+/// out-of-library effects among `cases`. A named case the bench does not run is an error
+/// (only checked when networks are on).
+fn network_cases(args: &DiagnoseBenchArgs, cases: &[String]) -> anyhow::Result<Vec<String>> {
+    let chosen: Vec<String> = match &args.network_cases {
+        Some(list) => list.split(',').map(|c| c.trim().to_string()).collect(),
+        None => cases
+            .iter()
+            .filter(|c| *c == "none" || c.parse::<EffectKind>().is_ok_and(|k| !k.in_library()))
+            .cloned()
+            .collect(),
+    };
+    if args.network_minutes > 0.0
+        && let Some(c) = chosen.iter().find(|c| !cases.contains(c))
+    {
+        anyhow::bail!(
+            "--network-cases: `{c}` is not one of the bench's cases ({})",
+            cases.join(",")
+        );
+    }
+    Ok(chosen)
+}
+
 pub fn run_bench(args: &DiagnoseBenchArgs) -> anyhow::Result<BenchSummary> {
     let t0 = Instant::now();
     let cases: Vec<String> = match &args.cases {
@@ -671,19 +695,7 @@ pub fn run_bench(args: &DiagnoseBenchArgs) -> anyhow::Result<BenchSummary> {
         "--network-minutes must be a number >= 0 (got {})",
         args.network_minutes
     );
-    let network_cases: Vec<String> = args
-        .network_cases
-        .split(',')
-        .map(|c| c.trim().to_string())
-        .collect();
-    if args.network_minutes > 0.0
-        && let Some(c) = network_cases.iter().find(|c| !cases.contains(c))
-    {
-        anyhow::bail!(
-            "--network-cases: `{c}` is not one of the bench's cases ({})",
-            cases.join(",")
-        );
-    }
+    let network_cases = network_cases(args, &cases)?;
     let mut objects = Vec::new();
     let mut out: Vec<BenchCase> = Vec::new();
     let mut skipped: Vec<SkippedCase> = Vec::new();
@@ -1009,6 +1021,21 @@ mod tests {
         let e = run_bench(&parse("none,magnet")).unwrap_err().to_string();
         assert!(e.contains("`magnet`") && e.contains("none,drag"), "{e}");
         assert!(!work.exists(), "nothing is generated before the check");
+    }
+
+    #[test]
+    fn networks_go_by_default_to_none_and_the_out_of_library_cases_present() {
+        let cases = |list: &str| -> Vec<String> { list.split(',').map(String::from).collect() };
+        let args = bench_args(&["--network-minutes", "1"]);
+        let picked = network_cases(&args, &cases("none,drag,magnet")).unwrap();
+        assert_eq!(picked, cases("none,magnet"));
+        let picked = network_cases(&args, &cases("drag,rotating-frame,none")).unwrap();
+        assert_eq!(picked, cases("rotating-frame,none"));
+        let args = bench_args(&["--network-minutes", "1", "--network-cases", "drag"]);
+        assert_eq!(
+            network_cases(&args, &cases("none,drag")).unwrap(),
+            cases("drag")
+        );
     }
 
     #[test]
