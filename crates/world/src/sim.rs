@@ -528,8 +528,6 @@ fn color_order<const K: usize>(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::build::DragShape;
-    use crate::effects::RotatingFrame;
 
     /// A free particle at rest in the turning lab, without gravity or ground, moves in a
     /// straight line in the inertial frame (it was carried along at Ω × r, nothing pushes
