@@ -309,6 +309,14 @@ fn run(
     let mut positions = Vec::with_capacity(steps);
     let mut velocities = Vec::with_capacity(steps);
     let mut loss: Option<Tensor> = None;
+    // The rest shape does not change along a rollout: its channels are built once.
+    let rest = if cfg.rest_inputs {
+        let mut r = Vec::with_capacity(n * REST_INPUTS);
+        rest_inputs(backbone.rest_positions(), &mut r);
+        Some(Tensor::from_vec(r, (n, REST_INPUTS), &dev)?)
+    } else {
+        None
+    };
     for step in 0..steps {
         let (Some(from), Some(to)) = (actions.frame(step), actions.frame(step + 1)) else {
             return Err(ResidualError::Input(format!(
@@ -370,10 +378,8 @@ fn run(
             ground_inputs(&current, backbone.config().ground_z, &mut g);
             parts.push(Tensor::from_vec(g, (n, GROUND_INPUTS), &dev)?);
         }
-        if cfg.rest_inputs {
-            let mut r = Vec::with_capacity(n * REST_INPUTS);
-            rest_inputs(backbone.rest_positions(), &mut r);
-            parts.push(Tensor::from_vec(r, (n, REST_INPUTS), &dev)?);
+        if let Some(r) = &rest {
+            parts.push(r.clone());
         }
         let feats = Tensor::cat(&parts, 1)?;
         debug_assert_eq!(feats.dim(1)?, cfg.input_dim());
