@@ -55,6 +55,9 @@ pub enum SimGradientArg {
     /// Through free flight: later steps charge a velocity residual for the motion it keeps
     /// causing.
     FreeFlight,
+    /// Through the backbone step's own adjoint (springs, dashpots, ground, grasp): later steps
+    /// charge a residual for what the backbone actually does with it.
+    Adjoint,
 }
 
 /// Arguments of `train`.
@@ -175,10 +178,10 @@ pub struct TrainArgs {
     /// evaluation reports; robust to segments the bounded residual cannot fix).
     #[arg(long, value_enum, default_value_t = LossArg::Mse)]
     pub loss: LossArg,
-    /// How gradients cross the (non-differentiable) backbone: `detached` (the paper's: each
-    /// residual is scored on its own step's positions only) or `free-flight` (a velocity
-    /// residual is also charged for the displacement it keeps causing at later steps of the
-    /// rollout). See docs/residual.md.
+    /// How gradients cross the backbone: `detached` (the paper's: each residual is scored on
+    /// its own step's positions only), `free-flight` (a velocity residual is also charged for
+    /// the displacement it keeps causing at later steps of the rollout, springs ignored) or
+    /// `adjoint` (through the backbone step's own linearisation). See docs/residual.md.
     #[arg(long, value_enum, default_value_t = SimGradientArg::Detached)]
     pub sim_gradient: SimGradientArg,
     /// Keep an exponential moving average of the weights with this decay per optimiser step
@@ -380,6 +383,7 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
         sim_gradient: match args.sim_gradient {
             SimGradientArg::Detached => SimGradient::Detached,
             SimGradientArg::FreeFlight => SimGradient::FreeFlight,
+            SimGradientArg::Adjoint => SimGradient::Adjoint,
         },
         ema_decay: args.ema_decay,
     };

@@ -30,6 +30,7 @@
 //! ```
 
 mod augment;
+mod backbone_op;
 mod batch;
 mod config;
 mod encoder;

@@ -2,13 +2,16 @@
 //! state. Used for evaluation (detached, one step at a time) and for training (one graph
 //! through all steps of a segment).
 
+use std::sync::Arc;
+
 use candle_core::Tensor;
 use dataset::Episode;
 use glam::Vec3;
 use scene::Scene;
 use serde::{Deserialize, Serialize};
-use springs::{Actions, Backbone, SimError, State};
+use springs::{Actions, Backbone, SimError, State, StepTape};
 
+use crate::backbone_op::BackboneStep;
 use crate::loss::{TrainLoss, step_loss};
 use crate::model::{
     GRIPPER_INPUTS, GROUND_INPUTS, REST_INPUTS, ResidualNet, gripper_inputs, ground_inputs,
@@ -123,6 +126,11 @@ pub enum SimGradient {
     /// absorb part of it, are ignored). Held particles carry nothing. The forward values are
     /// unchanged.
     FreeFlight,
+    /// Through the backbone step's own adjoint (`springs::StepAdjoint`: springs, dashpots,
+    /// ground contact and grasp linearised along the step actually taken): a later step's loss
+    /// sees how far the backbone carries, damps or undoes a residual. Costs about one more
+    /// backbone step per step. The forward values are unchanged.
+    Adjoint,
 }
 
 impl Default for RolloutOptions {
@@ -294,6 +302,10 @@ fn run(
     let dt = backbone.config().step_dt;
     let vs = f64::from(cfg.velocity_scale);
     let mut scratch = backbone.scratch();
+    // With the adjoint gradient each step is taped and becomes a graph node.
+    let adjoint = (train && opts.sim_gradient == SimGradient::Adjoint)
+        .then(|| Arc::new(backbone.step_adjoint()));
+    let mut tape = adjoint.as_ref().map(|_| StepTape::new());
     let mut sim = init.clone();
     let mut x = to_tensor(&sim.x, &dev)?;
     let mut v = to_tensor(&sim.v, &dev)?;
@@ -324,15 +336,17 @@ fn run(
             )));
         };
         let current = sim.x.clone();
-        backbone
-            .step(&mut sim, from, to, &mut scratch)
-            .map_err(|e| match e {
-                SimError::NonFinite { .. } => ResidualError::Diverged {
-                    step,
-                    what: e.to_string(),
-                },
-                e => ResidualError::Sim(e),
-            })?;
+        let stepped = match tape.as_mut() {
+            Some(t) => backbone.step_taped(&mut sim, from, to, &mut scratch, t),
+            None => backbone.step(&mut sim, from, to, &mut scratch),
+        };
+        stepped.map_err(|e| match e {
+            SimError::NonFinite { .. } => ResidualError::Diverged {
+                step,
+                what: e.to_string(),
+            },
+            e => ResidualError::Sim(e),
+        })?;
         let centre = current.iter().sum::<Vec3>() / n.max(1) as f32;
         let c = Tensor::from_slice(&centre.to_array(), (1, 3), &dev)?;
         let free: Vec<f32> = held
@@ -345,6 +359,13 @@ fn run(
         let free = Tensor::from_vec(free, (n, 1), &dev)?;
         let mut x_sim = to_tensor(&sim.x, &dev)?;
         let mut v_sim = to_tensor(&sim.v, &dev)?;
+        if let (Some(adjoint), Some(t)) = (&adjoint, tape.take()) {
+            let xv = Tensor::cat(&[&x, &v], 1)?;
+            let out = xv.apply_op1(BackboneStep::new(adjoint.clone(), t, &sim.x, &sim.v))?;
+            x_sim = out.narrow(1, 0, 3)?;
+            v_sim = out.narrow(1, 3, 3)?;
+            tape = Some(StepTape::new());
+        }
         if train && opts.sim_gradient == SimGradient::FreeFlight {
             // `a − a.detach()` is zero with `a`'s gradient: the values stay the backbone's.
             let gx = (&x - x.detach())?.broadcast_mul(&free)?;

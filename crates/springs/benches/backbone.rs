@@ -194,6 +194,32 @@ fn bench(c: &mut Criterion) {
             total
         })
     });
+    // Training through the backbone: the taped step, and the adjoint carried back through it.
+    c.bench_function("rope_1000p/step_taped", |b| {
+        let mut sc = rope.scratch();
+        let mut tape = springs::StepTape::new();
+        b.iter_batched_ref(
+            || rope0.clone(),
+            |st| {
+                rope.step_taped(st, f0, f1, &mut sc, &mut tape)
+                    .expect("step")
+            },
+            criterion::BatchSize::SmallInput,
+        )
+    });
+    c.bench_function("rope_1000p/step_adjoint", |b| {
+        let (mut sc, mut tape) = (rope.scratch(), springs::StepTape::new());
+        let mut st = rope0.clone();
+        rope.step_taped(&mut st, f0, f1, &mut sc, &mut tape)
+            .expect("step");
+        let adjoint = rope.step_adjoint();
+        let n = rope.num_particles();
+        b.iter_batched_ref(
+            || (vec![Vec3::ONE; n], vec![Vec3::ONE; n]),
+            |(gx, gv)| adjoint.vjp(&tape, gx, gv).expect("vjp"),
+            criterion::BatchSize::SmallInput,
+        )
+    });
     // The same step with the spectral substep (Lanczos estimate instead of Gershgorin's bound).
     let (rope_sp, _) = rope_backbone(SimConfig {
         substep: Substep::SPECTRAL,

@@ -77,6 +77,13 @@ pub enum SimError {
         /// First offending particle.
         particle: usize,
     },
+    /// A [`crate::StepTape`] does not belong to the backbone it is used with, or its step did
+    /// not complete.
+    #[error("step tape: {reason}")]
+    TapeMismatch {
+        /// What does not match.
+        reason: &'static str,
+    },
     /// An [`crate::Effect`] rejected its setup.
     #[error("effect {name}: {message}")]
     Effect {

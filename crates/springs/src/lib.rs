@@ -6,9 +6,10 @@
 //! topology, the five fitted [`SpringParams`] and a fixed substep derived from a stability bound
 //! ([`Substep::Auto`]); [`Backbone::step`] advances one model step (0.1 s) without allocating,
 //! [`Backbone::rollout`] runs a whole action sequence, and [`rollout_batch`] runs many rollouts
-//! in parallel with results independent of the thread count. Units: metres, seconds,
-//! kilograms, newtons; z is up. The model, its stability bound and every deviation from the
-//! reference code are described in `docs/physics.md`.
+//! in parallel with results independent of the thread count. [`Backbone::step_taped`] and
+//! [`StepAdjoint::vjp`] carry gradients back through a step, for models trained on top of the
+//! backbone. Units: metres, seconds, kilograms, newtons; z is up. The model, its stability
+//! bound and every deviation from the reference code are described in `docs/physics.md`.
 //!
 //! ```
 //! use glam::Vec3;
@@ -27,6 +28,7 @@
 //! ```
 
 mod actions;
+mod adjoint;
 mod backbone;
 mod config;
 mod effects;
@@ -42,6 +44,7 @@ mod step;
 mod topology;
 
 pub use actions::{ActionFrame, Actions, Rollout, State};
+pub use adjoint::{StepAdjoint, StepTape};
 pub use backbone::{Backbone, BackboneOptions};
 pub use config::{Dashpot, Manipulation, SimConfig, Substep};
 pub use effects::{AirDrag, Effect, GroundContact, ModelSetup, SubstepContext};

@@ -9,7 +9,9 @@ use crate::effects::{GroundContact, SubstepContext};
 use crate::params::{DIVERGENCE_LIMIT, GROUND_STIFFNESS};
 use crate::partition::SlabBuffers;
 use crate::split::{self, Crew};
-use crate::{ActionFrame, Actions, Backbone, Manipulation, Rollout, SimError, State, kernels};
+use crate::{
+    ActionFrame, Actions, Backbone, Manipulation, Rollout, SimError, State, StepTape, kernels,
+};
 
 /// Reusable working memory of one rollout: internal state, per-spring buffers, the rollout's
 /// current rest lengths and the effects' per-rollout state. Make one per rollout (or per
@@ -188,6 +190,34 @@ impl Backbone {
         to: ActionFrame<'_>,
         scratch: &mut Scratch,
     ) -> Result<(), SimError> {
+        self.step_inner(state, from, to, scratch, None)
+    }
+
+    /// [`Backbone::step`], recording in `tape` what [`crate::StepAdjoint::vjp`] needs to carry
+    /// gradients back through this step (positions and velocities at every substep: about
+    /// `2 × substeps × n` points). The step itself is bit-identical to [`Backbone::step`]'s.
+    pub fn step_taped(
+        &self,
+        state: &mut State,
+        from: ActionFrame<'_>,
+        to: ActionFrame<'_>,
+        scratch: &mut Scratch,
+        tape: &mut StepTape,
+    ) -> Result<(), SimError> {
+        tape.complete = false;
+        self.step_inner(state, from, to, scratch, Some(tape))?;
+        tape.complete = true;
+        Ok(())
+    }
+
+    fn step_inner(
+        &self,
+        state: &mut State,
+        from: ActionFrame<'_>,
+        to: ActionFrame<'_>,
+        scratch: &mut Scratch,
+        tape: Option<&mut StepTape>,
+    ) -> Result<(), SimError> {
         let n = self.num_particles();
         if scratch.n != n || scratch.rest.len() != self.springs.len() {
             return Err(SimError::ScratchMismatch {
@@ -208,7 +238,7 @@ impl Backbone {
         }
         let threads = split::crew_size(self);
         split::with_crew(self, threads, scratch, |sc, crew| {
-            self.advance(sc, from, to, crew)
+            self.advance(sc, from, to, crew, tape)
         })?;
         for i in 0..n {
             state.x[i] = scratch.x[i].into();
@@ -248,7 +278,7 @@ impl Backbone {
                 .filter_map(|t| actions.frame(t))
                 .zip((1..frames).filter_map(|t| actions.frame(t)))
             {
-                self.advance(sc, from, to, crew)?;
+                self.advance(sc, from, to, crew, None)?;
                 out.positions
                     .push(sc.x[..n].iter().map(|&p| p.into()).collect());
                 out.velocities
@@ -265,6 +295,7 @@ impl Backbone {
         from: ActionFrame<'_>,
         to: ActionFrame<'_>,
         crew: Option<&Crew>,
+        mut tape: Option<&mut StepTape>,
     ) -> Result<(), SimError> {
         sc.g_from.clear();
         sc.g_from.extend_from_slice(from.positions);
@@ -304,7 +335,18 @@ impl Backbone {
         let n_sub = self.substeps;
         let dt = self.dt;
         let gravity = Vec3A::from(self.config.gravity);
+        if let Some(t) = tape.as_deref_mut() {
+            let kin: Vec<u32> = sc.kin.iter().map(|k| k.0).collect();
+            t.begin(n, n_sub as usize, &kin, &sc.rest);
+        }
         for s in 0..n_sub {
+            if let Some(t) = tape.as_deref_mut() {
+                t.x.extend_from_slice(&sc.x[..n]);
+                t.tangential.resize(t.tangential.len() + n, 1.0);
+                if self.explicit_damping {
+                    t.v_start.extend_from_slice(&sc.v[..n]);
+                }
+            }
             let frac0 = s as f32 / n_sub as f32;
             let frac1 = (s + 1) as f32 / n_sub as f32;
             match &self.partition {
@@ -348,6 +390,9 @@ impl Backbone {
             for &(i, g, _) in &sc.kin {
                 sc.v[i as usize] = sc.g_vel[g as usize].into();
             }
+            if let Some(t) = tape.as_deref_mut() {
+                t.v_kicked.extend_from_slice(&sc.v[..n]);
+            }
             if self.has_damping {
                 match &self.partition {
                     None => kernels::damping_sweeps(&sc.damp, &sc.dir, &mut sc.v),
@@ -355,7 +400,9 @@ impl Backbone {
                 }
             }
             if let Some(h) = self.config.ground_z {
-                self.ground_velocity(h, sc);
+                let len = tape.as_ref().map_or(0, |t| t.tangential.len());
+                let tangential = tape.as_deref_mut().map(|t| &mut t.tangential[len - n..]);
+                self.ground_velocity(h, sc, tangential);
             }
             kernels::drift(dt, &sc.v[..n], &mut sc.x[..n]);
             for &(i, g, x0) in &sc.kin {
@@ -395,9 +442,12 @@ impl Backbone {
         }
         if let (Some(h), true) = (self.config.ground_z, self.config.clamp_to_ground) {
             // The reference clamps positions above the ground after each model step.
-            for (x, &im) in sc.x[..n].iter_mut().zip(&sc.inv_m_eff[..n]) {
+            for (i, (x, &im)) in sc.x[..n].iter_mut().zip(&sc.inv_m_eff[..n]).enumerate() {
                 if im > 0.0 && x.z < h {
                     x.z = h;
+                    if let Some(t) = tape.as_deref_mut() {
+                        t.clamped[i] = true;
+                    }
                 }
             }
         }
@@ -420,7 +470,9 @@ impl Backbone {
 
     /// Ground contact on velocities: implicit normal damping, then friction that removes
     /// `min(viscous, Coulomb)` tangential speed without reversing it (docs/physics.md).
-    fn ground_velocity(&self, h: f32, sc: &mut Scratch) {
+    /// With `tangential`, also records each contact's factor `|v_t'| / |v_t|` (for the
+    /// step's adjoint).
+    fn ground_velocity(&self, h: f32, sc: &mut Scratch, mut tangential: Option<&mut [f32]>) {
         let dt = self.dt;
         for i in 0..sc.n {
             let depth = h - sc.x[i].z;
@@ -452,6 +504,14 @@ impl Backbone {
                     }
                 }
             };
+            if let Some(t) = tangential.as_deref_mut() {
+                let speed = vt.length();
+                t[i] = if speed > 0.0 {
+                    new_vt.length() / speed
+                } else {
+                    1.0
+                };
+            }
             v.x = new_vt.x;
             v.y = new_vt.y;
         }
