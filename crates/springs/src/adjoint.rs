@@ -179,6 +179,7 @@ impl StepAdjoint {
         let mut lambda = vec![Vec3A::ZERO; n];
         let mut v2 = vec![Vec3A::ZERO; n];
         let mut pre = Vec::new();
+        let mut geom: Vec<(Vec3A, f32)> = Vec::with_capacity(bb.springs.len());
         for s in (0..tape.substeps).rev() {
             let x0 = &tape.x[s * n..(s + 1) * n];
             let v1 = &tape.v_kicked[s * n..(s + 1) * n];
@@ -190,16 +191,28 @@ impl StepAdjoint {
             for (v, x) in av.iter_mut().zip(&ax) {
                 *v += dt * *x;
             }
+            // Each spring's direction and length at the substep's start, shared by the three
+            // passes below (one square root per spring instead of three).
+            geom.clear();
+            geom.extend(bb.springs.iter().map(|&[a, b]| {
+                let d = x0[b as usize] - x0[a as usize];
+                let l = d.length();
+                if l > 0.0 {
+                    (d / l, l)
+                } else {
+                    (Vec3A::ZERO, 0.0)
+                }
+            }));
             v2.copy_from_slice(v1);
             if bb.has_damping {
-                replay_sweeps(bb, x0, &inv_m, &mut v2, &mut pre);
+                replay_sweeps(bb, &geom, &inv_m, &mut v2, &mut pre);
             }
             if let Some(h) = ground {
                 let tang = &tape.tangential[s * n..(s + 1) * n];
                 ground_transpose(bb, h, x0, &v2, tang, &inv_m, &mut ax, &mut av);
             }
             if bb.has_damping {
-                sweeps_transpose(bb, x0, &inv_m, &pre, &mut ax, &mut av);
+                sweeps_transpose(bb, &geom, &inv_m, &pre, &mut ax, &mut av);
             }
             for &k in &tape.kinematic {
                 av[k as usize] = Vec3A::ZERO;
@@ -209,14 +222,11 @@ impl StepAdjoint {
                 *l = *a * (dt * im);
             }
             let v0 = (bb.explicit_damping).then(|| &tape.v_start[s * n..(s + 1) * n]);
-            for (si, &[a, b]) in bb.springs.iter().enumerate() {
+            for (si, (&[a, b], &(u, l))) in bb.springs.iter().zip(&geom).enumerate() {
                 let (a, b) = (a as usize, b as usize);
-                let d = x0[b] - x0[a];
-                let l = d.length();
                 if l <= 0.0 {
                     continue;
                 }
-                let u = d / l;
                 let dl = lambda[b] - lambda[a];
                 let along = u * u.dot(dl);
                 let k = bb.stiffness[si];
@@ -320,7 +330,7 @@ fn sweep_order(springs: usize) -> impl DoubleEndedIterator<Item = usize> {
 /// impulse (in application order) for [`sweeps_transpose`].
 fn replay_sweeps(
     bb: &StepAdjoint,
-    x0: &[Vec3A],
+    geom: &[(Vec3A, f32)],
     inv_m: &[f32],
     v: &mut [Vec3A],
     pre: &mut Vec<Vec3A>,
@@ -329,14 +339,12 @@ fn replay_sweeps(
     for si in sweep_order(bb.springs.len()) {
         let [a, b] = bb.springs[si];
         let (a, b) = (a as usize, b as usize);
-        let d = x0[b] - x0[a];
         let dv = v[b] - v[a];
         pre.push(dv);
-        let l = d.length();
+        let (u, l) = geom[si];
         if l <= 0.0 {
             continue;
         }
-        let u = d / l;
         let w = bb.damp_weight[si];
         let imp = u * u.dot(dv);
         v[a] += imp * (w * inv_m[a]);
@@ -349,7 +357,7 @@ fn replay_sweeps(
 /// `λ_a −= P μ`, `λ_b += P μ`, and `P`'s dependence on the positions into `ax`.
 fn sweeps_transpose(
     bb: &StepAdjoint,
-    x0: &[Vec3A],
+    geom: &[(Vec3A, f32)],
     inv_m: &[f32],
     pre: &[Vec3A],
     ax: &mut [Vec3A],
@@ -360,12 +368,10 @@ fn sweeps_transpose(
         let si = if k < springs { k } else { 2 * springs - 1 - k };
         let [a, b] = bb.springs[si];
         let (a, b) = (a as usize, b as usize);
-        let d = x0[b] - x0[a];
-        let l = d.length();
+        let (u, l) = geom[si];
         if l <= 0.0 {
             continue;
         }
-        let u = d / l;
         let w = bb.damp_weight[si];
         let mu = w * inv_m[a] * av[a] - w * inv_m[b] * av[b];
         let pm = u * u.dot(mu);
