@@ -11,10 +11,10 @@ use springs::{StepAdjoint, StepTape};
 /// One taped backbone step. Input and output are `(n, 6)`: each particle's position and
 /// velocity, before and after the step.
 pub(crate) struct BackboneStep {
-    pub adjoint: Arc<StepAdjoint>,
-    pub tape: StepTape,
+    adjoint: Arc<StepAdjoint>,
+    tape: StepTape,
     /// The step's result, `(n, 6)` row-major.
-    pub out: Vec<f32>,
+    out: Vec<f32>,
 }
 
 impl BackboneStep {

@@ -128,8 +128,8 @@ pub enum SimGradient {
     FreeFlight,
     /// Through the backbone step's own adjoint (`springs::StepAdjoint`: springs, dashpots,
     /// ground contact and grasp linearised along the step actually taken): a later step's loss
-    /// sees how far the backbone carries, damps or undoes a residual. Costs about one more
-    /// backbone step per step. The forward values are unchanged.
+    /// sees how far the backbone carries, damps or undoes a residual. The adjoint costs about
+    /// four backbone steps per step (`docs/BENCHMARKS.md`). The forward values are unchanged.
     Adjoint,
 }
 

@@ -322,7 +322,7 @@ fn dashpot_direction_transpose(u: Vec3A, l: f32, dv: Vec3A, g: Vec3A) -> Vec3A {
 }
 
 /// The order in which the sweeps apply their pair impulses: forward, then backward.
-fn sweep_order(springs: usize) -> impl DoubleEndedIterator<Item = usize> {
+fn sweep_order(springs: usize) -> impl Iterator<Item = usize> {
     (0..springs).chain((0..springs).rev())
 }
 
