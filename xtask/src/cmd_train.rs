@@ -189,6 +189,14 @@ pub struct TrainArgs {
     /// averaged network instead of the last iterate.
     #[arg(long, default_value_t = 0.0)]
     pub ema_decay: f64,
+    /// Start from the weights of this network (a `residual.safetensors` with its
+    /// `residual.json` beside it) instead of a fresh initialisation, e.g. to fine-tune a
+    /// network trained on 5-step segments on whole windows. Its configuration must match the
+    /// model flags given here (bound, encoder, inputs, ablations). With --holdout, step 0 is
+    /// this network, so a fine-tuned one is kept only when clearly better than it. Ignored
+    /// when resuming from a checkpoint (which holds the weights).
+    #[arg(long)]
+    pub init_from: Option<PathBuf>,
     /// Print only the final line.
     #[arg(long)]
     pub quiet: bool,
@@ -265,6 +273,9 @@ struct TrainReport {
     train_config: TrainConfig,
     #[serde(skip_serializing_if = "Option::is_none")]
     selection: Option<Selection>,
+    /// The network training started from (`--init-from`); absent for a fresh initialisation.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    init_from: Option<String>,
 }
 
 fn model_config(args: &TrainArgs) -> ModelConfig {
@@ -290,6 +301,36 @@ fn model_config(args: &TrainArgs) -> ModelConfig {
         rest_inputs: args.rest_inputs,
         ..ModelConfig::default()
     }
+}
+
+/// The network of `path`, checked to have the configuration `want` that the flags ask for.
+fn initial_network(path: &Path, want: &ModelConfig) -> anyhow::Result<ResidualNet> {
+    let net = ResidualNet::load(path)
+        .with_context(|| format!("reading the --init-from network {}", path.display()))?;
+    let (have, want_v) = (
+        serde_json::to_value(net.config())?,
+        serde_json::to_value(want)?,
+    );
+    let mut differ = Vec::new();
+    if let (Some(have), Some(want_v)) = (have.as_object(), want_v.as_object()) {
+        for (key, value) in want_v {
+            match have.get(key) {
+                Some(old) if old == value => {}
+                old => differ.push(format!(
+                    "{key} {} (flags: {value})",
+                    old.cloned().unwrap_or(serde_json::Value::Null)
+                )),
+            }
+        }
+    }
+    anyhow::ensure!(
+        differ.is_empty(),
+        "--init-from {} has another configuration than the flags ask for: {}; pass the flags it \
+         was trained with",
+        path.display(),
+        differ.join(", ")
+    );
+    Ok(net)
 }
 
 fn read_previous(path: &Path) -> Option<serde_json::Value> {
@@ -388,7 +429,11 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
         ema_decay: args.ema_decay,
     };
     let unit = train_cfg.loss.unit();
-    let net = ResidualNet::new(&model_cfg, args.seed)?;
+    let resuming = args.run.join("train_ckpt.safetensors").exists() && !args.restart;
+    let net = match &args.init_from {
+        Some(path) if !resuming => initial_network(path, &model_cfg)?,
+        _ => ResidualNet::new(&model_cfg, args.seed)?,
+    };
     let parameters = net.parameter_count();
     let mut trainer = Trainer::new(net, train_cfg.clone())?;
     let ckpt = args.run.join("train_ckpt.safetensors");
@@ -396,7 +441,8 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
     let (mut loss, mut gnorm, mut lrs, mut prior_wall) = (Vec::new(), Vec::new(), Vec::new(), 0.0);
     let mut base_loss = Vec::new();
     let mut selection: Option<Selection> = None;
-    if ckpt.exists() && !args.restart {
+    let mut init_from = args.init_from.as_ref().map(|p| p.display().to_string());
+    if resuming {
         crate::train_resume::check(&ckpt.with_extension("json"), &model_cfg, &train_cfg)?;
         trainer
             .load_checkpoint(&ckpt)
@@ -414,6 +460,10 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
             gnorm.truncate(keep);
             lrs.truncate(keep);
             prior_wall = prev["wall_s"].as_f64().unwrap_or(0.0);
+            // The checkpoint's weights descend from the network the run started from.
+            if let Some(first) = prev["init_from"].as_str() {
+                init_from = Some(first.to_string());
+            }
             selection = serde_json::from_value::<Selection>(prev["selection"].clone())
                 .ok()
                 .filter(|s| {
@@ -500,6 +550,7 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
                 model_config: trainer.net.config().clone(),
                 train_config: trainer.cfg.clone(),
                 selection: selection.clone(),
+                init_from: init_from.clone(),
             },
         )
     };
@@ -624,4 +675,54 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
         "training {status} (the run's train.json records it; residual.safetensors holds the last finite parameters)"
     );
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn init_from_loads_the_same_weights_and_refuses_another_configuration() {
+        let dir = std::env::temp_dir().join(format!("pgrd-init-from-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let cfg = ModelConfig::tiny();
+        let path = dir.join("residual.safetensors");
+        let net = ResidualNet::new(&cfg, 7).unwrap();
+        net.save(&path).unwrap();
+
+        let loaded = initial_network(&path, &cfg).unwrap();
+        let same = |a: &ResidualNet, b: &ResidualNet| {
+            a.named_vars()
+                .iter()
+                .zip(b.named_vars())
+                .all(|((na, va), (nb, vb))| {
+                    na == &nb
+                        && va
+                            .as_tensor()
+                            .flatten_all()
+                            .unwrap()
+                            .to_vec1::<f32>()
+                            .unwrap()
+                            == vb
+                                .as_tensor()
+                                .flatten_all()
+                                .unwrap()
+                                .to_vec1::<f32>()
+                                .unwrap()
+                })
+        };
+        assert!(same(&net, &loaded));
+        // A fresh network of another seed differs, so the comparison can fail.
+        assert!(!same(&net, &ResidualNet::new(&cfg, 8).unwrap()));
+
+        let wider = ModelConfig {
+            residual_scale: 1.0,
+            ..cfg.clone()
+        };
+        let err = initial_network(&path, &wider).unwrap_err().to_string();
+        assert!(err.contains("residual_scale"), "{err}");
+        let missing = initial_network(&dir.join("none.safetensors"), &cfg).unwrap_err();
+        assert!(format!("{missing:#}").contains("none"), "{missing:#}");
+        std::fs::remove_dir_all(&dir).ok();
+    }
 }

@@ -100,6 +100,10 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
         "several --residual-scale or --start-from values need --holdout K: the recipe is chosen \
          on held-out training episodes, never on the val split"
     );
+    anyhow::ensure!(
+        args.init_from.is_none(),
+        "--init-from starts one network; it cannot start several bounds or start modes"
+    );
     let bounds = checked_bounds(&args.residual_scale)?;
     let starts = distinct_starts(&args.start_from);
     let recipes: Vec<(StartArg, f32)> = starts
