@@ -151,6 +151,11 @@ pub struct TrainArgs {
     /// a material coordinate (docs/residual.md, "Rest inputs").
     #[arg(long)]
     pub rest_inputs: bool,
+    /// Beyond the paper: also correct the particles a closed gripper holds, which moves the
+    /// grasp itself (for grasps that slip or grippers that lag their recorded path;
+    /// docs/residual.md, "The grasp the network may not correct").
+    #[arg(long)]
+    pub held_residual: bool,
     /// Where training segments start: `guided` (half from a backbone rollout pulled toward
     /// the recorded frames, half as `rollout`), `rollout` (the model's own states along the
     /// evaluation window, refreshed with the hybrid model every --refresh-every steps),
@@ -299,6 +304,7 @@ fn model_config(args: &TrainArgs) -> ModelConfig {
         gripper_inputs: args.gripper_inputs,
         ground_inputs: args.ground_inputs,
         rest_inputs: args.rest_inputs,
+        held_residual: args.held_residual,
         ..ModelConfig::default()
     }
 }

@@ -238,7 +238,8 @@ struct Live<'a> {
     hx: [Vec<Vec3>; 2],
     hv: [Vec<Vec3>; 2],
     /// Prepared by `prepare` for the network: centre of `x`, centred `x`, features, structure,
-    /// and 1 for particles free of a closed gripper during the step, 0 otherwise.
+    /// and 1 for particles the residual moves during the step (free of a closed gripper, or
+    /// all with `held_residual`), 0 otherwise.
     centre: Vec3,
     centred: Vec<Vec3>,
     feats: Vec<f32>,
@@ -355,7 +356,7 @@ impl<'a> Live<'a> {
         self.free.clear();
         self.free.extend(self.backbone.held().iter().map(|&g| {
             let held = g >= 0 && from.closed.get(g as usize).copied().unwrap_or(false);
-            if held { 0.0 } else { 1.0 }
+            if held && !cfg.held_residual { 0.0 } else { 1.0 }
         }));
     }
 

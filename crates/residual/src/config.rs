@@ -108,6 +108,14 @@ pub struct ModelConfig {
     /// saved before the option existed.
     #[serde(default)]
     pub rest_inputs: bool,
+    /// Also correct particles held by a closed gripper. The paper's residual leaves them to
+    /// the backbone's kinematic grasp, which moves them by the recorded gripper's displacement
+    /// from wherever they are, so a correction shifts the grasp itself: what an object whose
+    /// grasp slips, or whose gripper lags its recorded path, needs (`docs/residual.md`, "The
+    /// grasp the network may not correct"). Off in the paper and in configurations saved
+    /// before the option existed.
+    #[serde(default)]
+    pub held_residual: bool,
 }
 
 /// How the earlier and predicted positions are presented to the network.
@@ -148,6 +156,7 @@ impl Default for ModelConfig {
             gripper_inputs: false,
             ground_inputs: false,
             rest_inputs: false,
+            held_residual: false,
         }
     }
 }
@@ -255,6 +264,9 @@ impl ModelConfig {
         }
         if self.rest_inputs {
             parts.push("rest-inputs");
+        }
+        if self.held_residual {
+            parts.push("held-residual");
         }
         if parts.is_empty() {
             "full".into()

@@ -4,7 +4,7 @@
 
 use std::sync::Arc;
 
-use candle_core::Tensor;
+use candle_core::{DType, Tensor};
 use dataset::Episode;
 use glam::Vec3;
 use scene::Scene;
@@ -356,6 +356,12 @@ fn run(
                 if held { 0.0 } else { 1.0 }
             })
             .collect();
+        // Which particles the residual moves: the free ones, or all with `held_residual`.
+        let corrected = if cfg.held_residual {
+            Tensor::ones((n, 1), DType::F32, &dev)?
+        } else {
+            Tensor::from_slice(&free, (n, 1), &dev)?
+        };
         let free = Tensor::from_vec(free, (n, 1), &dev)?;
         let mut x_sim = to_tensor(&sim.x, &dev)?;
         let mut v_sim = to_tensor(&sim.v, &dev)?;
@@ -418,7 +424,9 @@ fn run(
         if window.len() > cfg.window {
             window.remove(0);
         }
-        let delta = net.aggregate(&window, Pass::Grad)?.broadcast_mul(&free)?;
+        let delta = net
+            .aggregate(&window, Pass::Grad)?
+            .broadcast_mul(&corrected)?;
         let (nx, nv) = match cfg.residual {
             ResidualKind::Velocity => ((&x_sim + (&delta * f64::from(dt))?)?, (&v_sim + &delta)?),
             ResidualKind::Position => ((&x_sim + (&delta * f64::from(dt))?)?, v_sim.clone()),

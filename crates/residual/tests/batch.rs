@@ -122,13 +122,52 @@ fn a_batch_predicts_what_each_rollout_predicts_alone() {
         rest_inputs: true,
         ..ModelConfig::tiny()
     };
-    for cfg in [ModelConfig::tiny(), ModelConfig::default(), gripper] {
+    let held = ModelConfig {
+        held_residual: true,
+        ..ModelConfig::tiny()
+    };
+    for cfg in [ModelConfig::tiny(), ModelConfig::default(), gripper, held] {
         let net = ResidualNet::new(&cfg, 4).unwrap();
         assert_batch_matches(&net, &[&a], &[5]);
         // Different clouds, point counts, actions and lengths (the short one leaves early).
         assert_batch_matches(&net, &[&a, &b, &c], &[5, 3, 5]);
         // More particles than one group holds: several groups, evaluated in parallel.
         assert_batch_matches(&net, &[&a, &b, &c, &a, &b], &[5, 3, 5, 2, 4]);
+    }
+}
+
+/// Largest distance between the particles `idx` of two rollouts, m.
+fn worst_of(a: &[Vec<Vec3>], b: &[Vec<Vec3>], idx: std::ops::Range<usize>) -> f32 {
+    a.iter()
+        .zip(b)
+        .flat_map(|(p, q)| idx.clone().map(move |i| (p[i] - q[i]).length()))
+        .fold(0.0, f32::max)
+}
+
+#[test]
+fn held_particles_get_a_residual_only_when_asked() {
+    let c = chain(40, Vec3::new(0.0, 0.01, 0.02));
+    let physics = c.backbone.rollout(&c.init, &c.actions).unwrap().positions;
+    for held_residual in [false, true] {
+        let cfg = ModelConfig {
+            held_residual,
+            ..ModelConfig::tiny()
+        };
+        let net = ResidualNet::new(&cfg, 4).unwrap();
+        let single = predict(&net, &c.backbone, &c.init, &c.history, &c.actions, 5).unwrap();
+        let jobs = [c.job(5)];
+        let batch = predict_batch(&net, &jobs).unwrap().remove(0).unwrap();
+        for out in [&single, &batch] {
+            // The chain's first three particles are held; the free ones move either way.
+            let held = worst_of(out, &physics[1..=5], 0..3);
+            let free = worst_of(out, &physics[1..=5], 3..40);
+            assert!(free > 1e-4, "the residual moves free particles by {free} m");
+            if held_residual {
+                assert!(held > 1e-5, "held particles moved by only {held} m");
+            } else {
+                assert!(held <= 1e-6, "held particles moved by {held} m");
+            }
+        }
     }
 }
 
