@@ -22,11 +22,8 @@
 
 mod common;
 
-use dataset::Split;
 use glam::Vec3;
 use rand::SeedableRng;
-use residual::TrainSet;
-use scene::SceneConfig;
 
 /// A fixed direction per particle along x, entries in [−1, 1].
 fn direction(i: usize) -> f32 {
@@ -38,24 +35,13 @@ fn norm(v: &[Vec3]) -> f32 {
 }
 
 fn main() -> Result<(), common::Error> {
-    let common::Inputs {
-        data,
-        protocol,
-        params,
-        rest,
-        ..
-    } = common::inputs(
+    let inputs = common::inputs(
         "usage: adjoint_growth <data-dir> <run-dir> [paper|deform] [steps] [segments]",
     )?;
+    let rest = &inputs.rest;
     let steps: usize = rest.first().map_or(Ok(100), |s| s.parse())?;
     let segments: usize = rest.get(1).map_or(Ok(3), |s| s.parse())?;
-    let set = TrainSet::with_protocol(
-        &data,
-        Split::Train,
-        &params,
-        &SceneConfig::default(),
-        protocol,
-    )?;
+    let set = inputs.training_set()?;
     let marks: Vec<usize> = [1, 5, 10, 25, 50, 100, 200, 300, 400]
         .into_iter()
         .filter(|&k| k <= steps)

@@ -15,21 +15,11 @@
 
 mod common;
 
-use dataset::Split;
-use residual::TrainSet;
-use scene::SceneConfig;
-
 fn main() -> Result<(), common::Error> {
-    let common::Inputs {
-        data_dir,
-        data,
-        protocol,
-        params,
-        rest,
-        ..
-    } = common::inputs(
+    let inputs = common::inputs(
         "usage: bound_oracle <data-dir> <run-dir> [paper|deform] [bounds] [episodes]",
     )?;
+    let (data_dir, rest) = (&inputs.data_dir, &inputs.rest);
     let bounds: Vec<f32> = rest
         .first()
         .map_or("0.1,0.2,0.5,1,2", String::as_str)
@@ -37,13 +27,7 @@ fn main() -> Result<(), common::Error> {
         .map(str::parse)
         .collect::<Result<_, _>>()?;
     let max_episodes: usize = rest.get(1).map_or(Ok(30), |s| s.parse())?;
-    let set = TrainSet::with_protocol(
-        &data,
-        Split::Train,
-        &params,
-        &SceneConfig::default(),
-        protocol,
-    )?;
+    let set = inputs.training_set()?;
     let mean = |v: Vec<(usize, f64)>| v.iter().map(|e| e.1).sum::<f64>() / v.len().max(1) as f64;
     let own = set.oracle_mde_cm(0.0, max_episodes)?;
     println!(

@@ -5,8 +5,9 @@
 
 use std::path::PathBuf;
 
-use dataset::Dataset;
-use scene::Protocol;
+use dataset::{Dataset, Split};
+use residual::TrainSet;
+use scene::{Protocol, SceneConfig};
 
 pub type Error = Box<dyn std::error::Error>;
 
@@ -50,4 +51,18 @@ pub fn inputs(usage: &str) -> Result<Inputs, Error> {
         protocol,
         rest: args.into_iter().skip(3).collect(),
     })
+}
+
+impl Inputs {
+    /// The training split with the run's backbone, under the chosen protocol (the val split
+    /// stays unread).
+    pub fn training_set(&self) -> Result<TrainSet, Error> {
+        Ok(TrainSet::with_protocol(
+            &self.data,
+            Split::Train,
+            &self.params,
+            &SceneConfig::default(),
+            self.protocol,
+        )?)
+    }
 }
