@@ -356,13 +356,13 @@ fn run(
                 if held { 0.0 } else { 1.0 }
             })
             .collect();
+        let free = Tensor::from_vec(free, (n, 1), &dev)?;
         // Which particles the residual moves: the free ones, or all with `held_residual`.
         let corrected = if cfg.held_residual {
             Tensor::ones((n, 1), DType::F32, &dev)?
         } else {
-            Tensor::from_slice(&free, (n, 1), &dev)?
+            free.clone()
         };
-        let free = Tensor::from_vec(free, (n, 1), &dev)?;
         let mut x_sim = to_tensor(&sim.x, &dev)?;
         let mut v_sim = to_tensor(&sim.v, &dev)?;
         if let (Some(adjoint), Some(t)) = (&adjoint, tape.take()) {
