@@ -76,24 +76,26 @@ fn main() -> Result<(), common::Error> {
         let n = bb.num_particles();
         let mut state = s.scene.init.clone();
         let mut scratch = bb.scratch();
-        let mut tapes = Vec::with_capacity(steps);
+        // Each step's tape and the state it started from.
+        let (mut tapes, mut starts) = (Vec::with_capacity(steps), Vec::with_capacity(steps));
         for k in 0..steps {
             let (Some(from), Some(to)) = (actions.frame(k), actions.frame(k + 1)) else {
                 break;
             };
+            starts.push(state.clone());
             let mut tape = springs::StepTape::new();
             bb.step_taped(&mut state, from, to, &mut scratch, &mut tape)?;
             tapes.push(tape);
         }
         let adjoint = bb.step_adjoint();
         let start: Vec<Vec3> = (0..n).map(|i| Vec3::new(direction(i), 0.0, 0.0)).collect();
+        let n0 = norm(&start);
         let mut adj = Vec::new();
         for &k in marks.iter().filter(|&&k| k <= tapes.len()) {
             let (mut gx, mut gv) = (start.clone(), vec![Vec3::ZERO; n]);
             for tape in tapes[tapes.len() - k..].iter().rev() {
                 adjoint.vjp(tape, &mut gx, &mut gv)?;
             }
-            let n0 = norm(&start);
             adj.push(format!("{k}:{:.1e}/{:.1e}", norm(&gx) / n0, norm(&gv) / n0));
         }
         println!("adj {}", adj.join(" "));
@@ -108,17 +110,13 @@ fn main() -> Result<(), common::Error> {
             a.iter().zip(b).map(|(u, w)| f64::from(u.dot(*w))).sum()
         };
         let (mut worst, mut at, mut scale) = (0.0f64, 0, 0.0f64);
-        let mut state = s.scene.init.clone();
-        for k in 0..tapes.len() {
+        let eps = 1e-5f32;
+        for (k, (tape, before)) in tapes.iter().zip(&starts).enumerate() {
             let (Some(from), Some(to)) = (actions.frame(k), actions.frame(k + 1)) else {
                 break;
             };
-            let before = state.clone();
-            let mut tape = springs::StepTape::new();
-            bb.step_taped(&mut state, from, to, &mut scratch, &mut tape)?;
             let (mut gx, mut gv) = (g.clone(), vec![Vec3::ZERO; n]);
-            adjoint.vjp(&tape, &mut gx, &mut gv)?;
-            let eps = 1e-5f32;
+            adjoint.vjp(tape, &mut gx, &mut gv)?;
             let mut ends = [before.clone(), before.clone()];
             for (end, sign) in ends.iter_mut().zip([1.0f32, -1.0]) {
                 for (x, d) in end.x.iter_mut().zip(&p) {
