@@ -72,6 +72,10 @@ pub struct DiagnoseArgs {
     /// with it on held-out error (by default the signature breaks such ties).
     #[arg(long)]
     pub no_tie_break: bool,
+    /// Least held-out shrinkage (fraction) a candidate, and the effect inside it, must reach
+    /// besides an interval above 0 to count as significant (`gap::VerdictRule`).
+    #[arg(long, default_value_t = gap::VerdictRule::default().min_shrinkage)]
+    pub min_shrinkage: f64,
     /// Ignore `<run>/residual.safetensors` (by default a trained network there is scored on
     /// the held-out episodes: how much of the gap is learnable, and `unknown` when it beats
     /// every library model).
@@ -129,6 +133,7 @@ fn config_from(args: &DiagnoseArgs, run_effects: &[BaseEffect]) -> anyhow::Resul
         probe: !args.no_probe,
         rule: gap::VerdictRule {
             signature_tie_break: !args.no_tie_break,
+            min_shrinkage: args.min_shrinkage,
             ..gap::VerdictRule::default()
         },
         ..DiagnoseConfig::default()

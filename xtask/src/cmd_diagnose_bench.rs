@@ -189,6 +189,10 @@ pub struct DiagnoseBenchArgs {
     /// default: `none` and the out-of-library effects among the bench's cases).
     #[arg(long)]
     pub network_cases: Option<String>,
+    /// The verdict rule's least significant shrinkage in every diagnosis, base searches
+    /// included (as `diagnose --min-shrinkage`).
+    #[arg(long, default_value_t = gap::VerdictRule::default().min_shrinkage)]
+    pub min_shrinkage: f64,
     /// Where generated datasets and reports go.
     #[arg(long, default_value = "target/diagnose-bench")]
     pub work: PathBuf,
@@ -416,6 +420,10 @@ fn diagnose(
         seed: args.seed,
         rescore: args.rescore,
         base: base.to_vec(),
+        rule: gap::VerdictRule {
+            min_shrinkage: args.min_shrinkage,
+            ..gap::VerdictRule::default()
+        },
         ..DiagnoseConfig::default()
     };
     Ok(gap::diagnose(train, val, start, &cfg, &mut |_| {})?)

@@ -389,6 +389,13 @@ pub fn diagnose(
             "population >= 2, samples >= 1 and resamples >= 1 are needed".into(),
         ));
     }
+    let rule = &config.rule;
+    if !(0.0..1.0).contains(&rule.min_shrinkage) || !(0.0..1.0).contains(&rule.probe_margin) {
+        return Err(GapError::Config(format!(
+            "the verdict rule's min_shrinkage and probe_margin must lie in [0, 1) (got {} and {})",
+            rule.min_shrinkage, rule.probe_margin
+        )));
+    }
     if let Some(s) = train
         .iter()
         .chain(val)

@@ -152,3 +152,18 @@ fn bad_base_lists_are_errors() {
     assert_eq!(label, "plasticity=0.02:5");
     assert_eq!(BaseEffect::parse(&label).unwrap().values, vec![0.02, 5.0]);
 }
+
+#[test]
+fn a_verdict_rule_outside_its_range_is_an_error() {
+    let (train, val) = (scenes(dataset::Split::Train), scenes(dataset::Split::Val));
+    for (min_shrinkage, probe_margin) in [(-0.01, 0.1), (1.0, 0.1), (f64::NAN, 0.1), (0.05, 2.0)] {
+        let mut cfg = tiny(Vec::new());
+        cfg.rule.min_shrinkage = min_shrinkage;
+        cfg.rule.probe_margin = probe_margin;
+        let r = gap::diagnose(&train, &val, &backbone(), &cfg, &mut |_| {});
+        assert!(
+            matches!(r, Err(gap::GapError::Config(_))),
+            "{min_shrinkage}, {probe_margin} accepted"
+        );
+    }
+}
