@@ -12,10 +12,9 @@ use springs::SpringParams;
 use crate::GapError;
 use crate::base::{BaseEffect, check_distinct};
 use crate::candidates::{Candidate, CandidateFamily, MaterialFrame};
+use crate::judge::{counts, judge};
 use crate::locate::{Where, locate};
-use crate::stats::{
-    Comparison, Rival, Verdict, VerdictRule, best_candidate, break_tie, decide, paired_shrinkage,
-};
+use crate::stats::{Comparison, VerdictRule, paired_shrinkage};
 
 /// Settings of a diagnosis.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -79,10 +78,12 @@ pub struct Heldout {
     /// Two-sided Chamfer (sum of both one-sided means).
     pub chamfer_cm: f64,
     /// Exact EMD (NaN when not computed).
+    #[serde(deserialize_with = "crate::nan::f64")]
     pub emd_cm: f64,
     /// Per-episode MDE, cm.
     pub per_episode_mde_cm: Vec<f64>,
     /// Per-step MDE, mean over episodes, cm.
+    #[serde(deserialize_with = "crate::nan::vec")]
     pub per_step_mde_cm: Vec<f64>,
     /// Episodes whose rollout failed (diverged); scored with the control's error.
     pub failed: usize,
@@ -169,6 +170,7 @@ pub struct HowFar {
     /// Chamfer shrinkage.
     pub shrinkage_chamfer: f64,
     /// EMD shrinkage.
+    #[serde(deserialize_with = "crate::nan::f64")]
     pub shrinkage_emd: f64,
 }
 
@@ -389,13 +391,7 @@ pub fn diagnose(
             "population >= 2, samples >= 1 and resamples >= 1 are needed".into(),
         ));
     }
-    let rule = &config.rule;
-    if !(0.0..1.0).contains(&rule.min_shrinkage) || !(0.0..1.0).contains(&rule.probe_margin) {
-        return Err(GapError::Config(format!(
-            "the verdict rule's min_shrinkage and probe_margin must lie in [0, 1) (got {} and {})",
-            rule.min_shrinkage, rule.probe_margin
-        )));
-    }
+    config.rule.check()?;
     if let Some(s) = train
         .iter()
         .chain(val)
@@ -500,14 +496,13 @@ pub fn diagnose(
             config.resamples,
             config.seed ^ ((k as u64 + 1) << 32),
         )?;
-        let entry = RankedEffect {
+        let mut entry = RankedEffect {
             effect: cand.name().to_string(),
             heldout_mde_before_cm: control_h.mde_cm,
             heldout_mde_after_cm: h.mde_cm,
             shrinkage: cmp.shrinkage,
             ci95: cmp.ci95,
-            significant: cmp.significant(config.rule.min_shrinkage)
-                && itself.significant(config.rule.min_shrinkage),
+            significant: false, // set below, by the verdict rule's own test
             effect_itself: Some(itself),
             signature_cosine: signature_cosine(base, &config.base, *cand, &frame, sig_scenes),
             fitted: fitted_names(&model.family, &model.real),
@@ -515,6 +510,7 @@ pub fn diagnose(
             refit_wall_s: model.wall_s,
             heldout_mde_per_episode_cm: h.per_episode_mde_cm.clone(),
         };
+        entry.significant = counts(&entry, &config.rule, config.rule.min_shrinkage);
         progress(&format!(
             "{:<24} held-out MDE {:.3} -> {:.3} cm, shrinkage {:+.3} [{:+.3}, {:+.3}], vs effect off {:+.3} [{:+.3}, {:+.3}], signature cos {:+.2} ({:.1} s)",
             entry.effect,
@@ -545,88 +541,13 @@ pub fn diagnose(
             .total_cmp(&entries[*a].0.shrinkage)
             .then(a.cmp(b))
     });
-    // A candidate whose effect does not carry its gain cannot be the verdict (nor can the
-    // probe make the gap `unknown` that way).
-    let carries = |e: &RankedEffect| {
-        e.effect_itself
-            .is_none_or(|c| c.significant(config.rule.min_shrinkage))
-    };
-    let library: Vec<(String, Comparison)> = entries
-        .iter()
-        .filter(|(e, _)| carries(e))
-        .map(|(e, _)| {
-            (
-                e.effect.clone(),
-                Comparison {
-                    shrinkage: e.shrinkage,
-                    ci95: e.ci95,
-                },
-            )
-        })
-        .collect();
-    let by_shrinkage = best_candidate(&library, &config.rule)
-        .and_then(|name| entries.iter().position(|(e, _)| e.effect == name));
-    // Candidates the held-out error cannot separate from the best go to the signature.
-    let mut tie_break = None;
-    let best_sig = match by_shrinkage {
-        Some(b) if config.rule.signature_tie_break => {
-            let mut rivals = Vec::new();
-            for (j, (e, h)) in entries.iter().enumerate() {
-                if j == b || !e.significant {
-                    continue;
-                }
-                rivals.push(Rival {
-                    effect: e.effect.clone(),
-                    signature_cosine: e.signature_cosine,
-                    best_vs_rival: paired_shrinkage(
-                        &h.per_episode_mde_cm,
-                        &entries[b].1.per_episode_mde_cm,
-                        config.resamples,
-                        config.seed ^ (0x71E0 + j as u64),
-                    )?,
-                });
-            }
-            let best = &entries[b].0;
-            let (chosen, tied) = break_tie((&best.effect, best.signature_cosine), &rivals);
-            let c = entries.iter().position(|(e, _)| e.effect == chosen);
-            if tied.len() > 1 {
-                tie_break = Some(TieBreak {
-                    by_shrinkage: best.effect.clone(),
-                    tied,
-                    chosen,
-                });
-            }
-            c
-        }
-        other => other,
-    };
-    let probe_vs_best = match (&probe, best_sig) {
-        (Some((pe, ph, _)), Some(b)) if carries(pe) => Some(paired_shrinkage(
-            &entries[b].1.per_episode_mde_cm,
-            &ph.per_episode_mde_cm,
-            config.resamples,
-            config.seed ^ 0xB0B,
-        )?),
-        _ => None,
-    };
-    let probe_vs_control = probe
-        .as_ref()
-        .filter(|(e, _, _)| carries(e))
-        .map(|(e, _, _)| Comparison {
-            shrinkage: e.shrinkage,
-            ci95: e.ci95,
-        });
-    let verdict = decide(
-        best_sig.map(|b| entries[b].0.effect.as_str()),
-        probe_vs_control,
-        probe_vs_best,
-        &config.rule,
-    );
+    let library: Vec<RankedEffect> = entries.iter().map(|(e, _)| e.clone()).collect();
+    let judged = judge(&library, probe.as_ref().map(|(e, _, _)| e), config)?;
     // How far: the verdict's effect, or the top-ranked one for reference.
-    let shown = match &verdict {
-        Verdict::Effect(name) => entries.iter().position(|(e, _)| &e.effect == name),
-        _ => order.first().copied(),
-    };
+    let shown = entries
+        .iter()
+        .position(|(e, _)| e.effect == judged.verdict)
+        .or_else(|| order.first().copied());
     let how_far = match shown {
         Some(i) => {
             let before = heldout(&control.family, &control.real, val, None, true)?;
@@ -650,11 +571,11 @@ pub fn diagnose(
         None => None,
     };
     Ok(Diagnosis {
-        verdict: verdict.label().to_string(),
+        verdict: judged.verdict,
         ranking: order.iter().map(|i| entries[*i].0.clone()).collect(),
         probe: probe.map(|(e, _, _)| e),
-        probe_vs_best,
-        tie_break,
+        probe_vs_best: judged.probe_vs_best,
+        tie_break: judged.tie_break,
         r#where: place,
         how_far,
         backbone_as_given,

@@ -19,6 +19,8 @@
 //! - A model may already hold some library effects ([`BaseEffect`], e.g. the verdict of an
 //!   earlier diagnosis): they are refitted with the backbone in the control and in every
 //!   candidate refit, so the diagnosis ranks the remaining candidates against that model.
+//! - [`Diagnosis::rejudge`] applies another [`VerdictRule`] to a stored report's refits
+//!   (the same stage as the diagnosis, [`judge`]): how the verdict depends on the rule.
 //! - [`add_learnable`] adds a trained residual network's held-out errors: how much of the
 //!   gap is learnable, and `unknown` when the network beats every model the library offers.
 //! - [`render_html`] turns a [`Diagnosis`] into a self-contained page.
@@ -42,8 +44,10 @@ mod candidates;
 mod diagnose;
 pub mod forces;
 mod html;
+mod judge;
 mod learnable;
 mod locate;
+mod nan;
 mod stats;
 
 pub use base::{BaseEffect, backbone_options};
@@ -53,6 +57,7 @@ pub use diagnose::{
     evaluate, material_frame,
 };
 pub use html::render_html;
+pub use judge::{Judgement, judge};
 pub use learnable::{Learnable, add_learnable};
 pub use locate::{Bin, CONTACT_HEIGHT_M, Trend, Where, locate, spearman};
 pub use stats::{

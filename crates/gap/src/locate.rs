@@ -13,10 +13,13 @@ pub struct Bin {
     /// What the group is.
     pub label: String,
     /// Range of the binned quantity `[lo, hi]` (its unit is in the quantity's name).
+    #[serde(deserialize_with = "crate::nan::pair")]
     pub range: [f64; 2],
     /// Share of all samples in the group.
+    #[serde(deserialize_with = "crate::nan::f64")]
     pub share: f64,
     /// Mean position error, cm.
+    #[serde(deserialize_with = "crate::nan::f64")]
     pub mean_error_cm: f64,
 }
 
@@ -28,6 +31,7 @@ pub struct Trend {
     /// Five equal-count bins.
     pub bins: Vec<Bin>,
     /// Spearman rank correlation between the quantity and the error.
+    #[serde(deserialize_with = "crate::nan::f64")]
     pub spearman: f64,
 }
 
@@ -37,10 +41,12 @@ pub struct Where {
     /// Reference shape (tracked particles of the first held-out episode's start frame), m.
     pub reference_shape: Vec<[f32; 3]>,
     /// Mean error per tracked particle over all held-out steps and episodes, cm.
+    #[serde(deserialize_with = "crate::nan::vec")]
     pub per_particle_cm: Vec<f64>,
     /// Mean error per region of the rest shape: five bins along the principal axis.
     pub regions: Vec<Bin>,
     /// Mean error per predicted step over episodes, cm.
+    #[serde(deserialize_with = "crate::nan::vec")]
     pub per_step_cm: Vec<f64>,
     /// Ground contact / fast motion / free motion.
     pub phases: Vec<Bin>,

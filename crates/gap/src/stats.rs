@@ -91,6 +91,20 @@ pub struct VerdictRule {
     pub signature_tie_break: bool,
 }
 
+impl VerdictRule {
+    /// Errors unless both thresholds lie in [0, 1) (shrinkages are fractions below 1).
+    pub fn check(&self) -> Result<(), GapError> {
+        if (0.0..1.0).contains(&self.min_shrinkage) && (0.0..1.0).contains(&self.probe_margin) {
+            Ok(())
+        } else {
+            Err(GapError::Config(format!(
+                "the verdict rule's min_shrinkage and probe_margin must lie in [0, 1) (got {} and {})",
+                self.min_shrinkage, self.probe_margin
+            )))
+        }
+    }
+}
+
 impl Default for VerdictRule {
     fn default() -> Self {
         VerdictRule {

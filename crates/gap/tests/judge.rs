@@ -1,0 +1,170 @@
+//! The verdict stage on its own: re-judging a stored diagnosis reproduces it under its own
+//! rule, and the rule's thresholds move the verdict the way the method says.
+
+use gap::{Candidate, Comparison, DiagnoseConfig, RankedEffect, VerdictRule, judge};
+
+mod common;
+use common::scenes;
+
+fn refit(
+    effect: &str,
+    shrinkage: f64,
+    lo: f64,
+    itself: f64,
+    cos: f64,
+    per: Vec<f64>,
+) -> RankedEffect {
+    let mean = per.iter().sum::<f64>() / per.len() as f64;
+    RankedEffect {
+        effect: effect.to_string(),
+        heldout_mde_before_cm: 2.0,
+        heldout_mde_after_cm: mean,
+        shrinkage,
+        ci95: [lo, shrinkage + (shrinkage - lo)],
+        significant: false,
+        effect_itself: Some(Comparison {
+            shrinkage: itself,
+            ci95: [itself / 2.0, itself * 1.5],
+        }),
+        signature_cosine: cos,
+        fitted: Vec::new(),
+        train_loss_m2: 0.0,
+        refit_wall_s: 0.0,
+        heldout_mde_per_episode_cm: per,
+    }
+}
+
+fn config(min_shrinkage: f64) -> DiagnoseConfig {
+    DiagnoseConfig {
+        rule: VerdictRule {
+            min_shrinkage,
+            ..VerdictRule::default()
+        },
+        ..DiagnoseConfig::default()
+    }
+}
+
+#[test]
+fn the_floor_and_the_tie_break_decide_between_refits() {
+    let a_per = vec![1.60, 1.70, 1.50, 1.65, 1.55, 1.60, 1.62, 1.58];
+    // B: A's errors give or take 0.02 cm, so held-out error cannot separate the two.
+    let b_per: Vec<f64> = a_per
+        .iter()
+        .enumerate()
+        .map(|(i, v)| v + if i % 2 == 0 { 0.02 } else { -0.02 })
+        .collect();
+    let a = refit("drag", 0.20, 0.10, 0.20, 0.1, a_per.clone());
+    let b = refit("bending", 0.18, 0.08, 0.18, 0.8, b_per);
+    let library = [a.clone(), b.clone()];
+
+    // Both count at the default floor and are tied: the signature names B.
+    let j = judge(&library, None, &config(0.05)).unwrap();
+    assert_eq!(j.verdict, "bending");
+    assert_eq!(j.significant, ["drag", "bending"]);
+    let tb = j.tie_break.expect("a tie");
+    assert_eq!(
+        (tb.by_shrinkage.as_str(), tb.chosen.as_str()),
+        ("drag", "bending")
+    );
+
+    // A floor between the two leaves A alone; one above both leaves nothing.
+    let j = judge(&library, None, &config(0.19)).unwrap();
+    assert_eq!((j.verdict.as_str(), j.tie_break), ("drag", None));
+    assert_eq!(
+        judge(&library, None, &config(0.25)).unwrap().verdict,
+        "none"
+    );
+
+    // An effect that does not carry its refit's gain cannot be the verdict.
+    let mut hollow = a.clone();
+    hollow.effect_itself = Some(Comparison {
+        shrinkage: 0.01,
+        ci95: [-0.02, 0.04],
+    });
+    assert_eq!(
+        judge(&[hollow], None, &config(0.05)).unwrap().verdict,
+        "none"
+    );
+
+    // A probe far below the chosen candidate makes the gap `unknown`; alone, too.
+    let probe = refit("external-field", 0.5, 0.45, 0.5, 0.0, vec![1.0; 8]);
+    let j = judge(&library, Some(&probe), &config(0.05)).unwrap();
+    assert_eq!(j.verdict, "unknown");
+    assert!(j.probe_vs_best.is_some_and(|c| c.shrinkage > 0.3));
+    assert_eq!(
+        judge(&library, Some(&probe), &config(0.6)).unwrap().verdict,
+        "none"
+    );
+    assert_eq!(
+        judge(&[], Some(&probe), &config(0.05)).unwrap().verdict,
+        "unknown"
+    );
+}
+
+#[test]
+fn rejudging_a_diagnosis_under_its_own_rule_reproduces_it() {
+    let cfg = DiagnoseConfig {
+        population: 4,
+        generations: 2,
+        samples: 1,
+        resamples: 200,
+        candidates: vec![Candidate::Drag, Candidate::Bending, Candidate::Friction],
+        signature_scenes: 1,
+        ..DiagnoseConfig::default()
+    };
+    let base = springs::SpringParams {
+        threshold: 0.03,
+        max_springs: 20,
+        ..springs::SpringParams::reference_rope()
+    };
+    let (train, val) = (scenes(dataset::Split::Train), scenes(dataset::Split::Val));
+    let d = gap::diagnose(&train, &val, &base, &cfg, &mut |_| {}).unwrap();
+    let again = d.rejudge(d.config.rule).unwrap();
+    assert_eq!(again.verdict, d.verdict);
+    assert_eq!(again.tie_break, d.tie_break);
+    assert_eq!(again.probe_vs_best, d.probe_vs_best);
+    let flagged: Vec<&str> = d
+        .ranking
+        .iter()
+        .filter(|r| r.significant)
+        .map(|r| r.effect.as_str())
+        .collect();
+    for name in &again.significant {
+        assert!(flagged.contains(&name.as_str()), "{name}");
+    }
+    assert_eq!(again.significant.len(), flagged.len());
+    // No refit removes 99 % of the error: under that floor nothing is significant.
+    let strict = VerdictRule {
+        min_shrinkage: 0.99,
+        ..d.config.rule
+    };
+    let j = d.rejudge(strict).unwrap();
+    assert_eq!((j.verdict.as_str(), j.significant.len()), ("none", 0));
+    // A rule outside its range is an error, not a verdict.
+    assert!(
+        d.rejudge(VerdictRule {
+            min_shrinkage: 1.5,
+            ..strict
+        })
+        .is_err()
+    );
+}
+
+#[test]
+fn stored_bench_reports_are_reproduced_by_the_rule_they_were_judged_with() {
+    let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data");
+    let reports = [
+        ("rope-plasticity-x64-seed1", "plasticity"),
+        ("paper-magnet-x4-seed0", "unknown"),
+        ("flag-magnet-x4-seed1", "drag"),
+    ];
+    for (name, verdict) in reports {
+        let text = std::fs::read_to_string(format!("{dir}/{name}.json")).unwrap();
+        let d: gap::Diagnosis = serde_json::from_str(&text).unwrap();
+        assert_eq!(d.verdict, verdict);
+        let j = d.rejudge(d.config.rule).unwrap();
+        assert_eq!(j.verdict, d.verdict, "{name}");
+        assert_eq!(j.tie_break, d.tie_break, "{name}");
+        assert_eq!(j.probe_vs_best, d.probe_vs_best, "{name}");
+    }
+}
