@@ -42,9 +42,12 @@ fn main() -> anyhow::Result<()> {
     let work = Path::new(work);
     let text = std::fs::read_to_string(bench).with_context(|| bench.clone())?;
     let json: serde_json::Value = serde_json::from_str(&text)?;
+    // A finished bench writes a summary with `cases`; one still running or interrupted, the
+    // pair (objects, cases).
     let cases = json["cases"]
         .as_array()
-        .context("no `cases` in the bench file")?;
+        .or_else(|| json[1].as_array())
+        .context("no cases in the bench file")?;
 
     // Objects whose base search changes with the floor: their cases are not exact.
     let mut inexact: BTreeMap<(String, usize), bool> = BTreeMap::new();
