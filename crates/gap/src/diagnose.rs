@@ -510,7 +510,7 @@ pub fn diagnose(
             refit_wall_s: model.wall_s,
             heldout_mde_per_episode_cm: h.per_episode_mde_cm.clone(),
         };
-        entry.significant = counts(&entry, &config.rule, config.rule.min_shrinkage);
+        entry.significant = counts(&entry, &config.rule);
         progress(&format!(
             "{:<24} held-out MDE {:.3} -> {:.3} cm, shrinkage {:+.3} [{:+.3}, {:+.3}], vs effect off {:+.3} [{:+.3}, {:+.3}], signature cos {:+.2} ({:.1} s)",
             entry.effect,

@@ -25,12 +25,12 @@ pub struct Judgement {
 
 /// Whether the rule counts a refit as a significant improvement: against the control, and with
 /// its effect carrying the gain (`effect_itself`, absent in reports older than the check).
-pub(crate) fn counts(e: &RankedEffect, rule: &VerdictRule, floor: f64) -> bool {
+pub(crate) fn counts(e: &RankedEffect, rule: &VerdictRule) -> bool {
     let main = Comparison {
         shrinkage: e.shrinkage,
         ci95: e.ci95,
     };
-    main.significant(floor) && carries(e, rule)
+    main.significant(rule.min_shrinkage) && carries(e, rule)
 }
 
 fn carries(e: &RankedEffect, rule: &VerdictRule) -> bool {
@@ -48,10 +48,7 @@ pub fn judge(
     config: &DiagnoseConfig,
 ) -> Result<Judgement, GapError> {
     let rule = &config.rule;
-    let significant: Vec<bool> = library
-        .iter()
-        .map(|e| counts(e, rule, rule.min_shrinkage))
-        .collect();
+    let significant: Vec<bool> = library.iter().map(|e| counts(e, rule)).collect();
     let candidates: Vec<(String, Comparison)> = library
         .iter()
         .filter(|e| carries(e, rule))
