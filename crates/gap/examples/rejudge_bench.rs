@@ -11,7 +11,7 @@
 //! where it does not are marked, since a real run at that floor would diagnose their cases
 //! against another base model.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::path::Path;
 
 use anyhow::{Context, bail};
@@ -50,12 +50,12 @@ fn main() -> anyhow::Result<()> {
         .context("no cases in the bench file")?;
 
     // Objects whose base search changes with the floor: their cases are not exact.
-    let mut inexact: BTreeMap<(String, usize), bool> = BTreeMap::new();
+    let mut inexact: BTreeSet<(String, usize)> = BTreeSet::new();
     let objects: Vec<String> = cases
         .iter()
         .filter_map(|c| c["object"].as_str().map(String::from))
         .collect();
-    for object in objects.iter().collect::<std::collections::BTreeSet<_>>() {
+    for object in objects.iter().collect::<BTreeSet<_>>() {
         for step in 0.. {
             let p = work.join(format!("{object}-none/report-base{step}/report.json"));
             if !p.exists() {
@@ -69,7 +69,7 @@ fn main() -> anyhow::Result<()> {
                         "{object}: base search step {step} {} -> {v} at floor {f}",
                         d.verdict
                     );
-                    inexact.insert((object.clone(), k), true);
+                    inexact.insert((object.clone(), k));
                 }
             }
         }
@@ -101,7 +101,7 @@ fn main() -> anyhow::Result<()> {
         );
         for (k, f) in floors.iter().enumerate() {
             let v = d.rejudge(floor_rule(&d, *f))?.verdict;
-            let mark = if inexact.contains_key(&(object.clone(), k)) {
+            let mark = if inexact.contains(&(object.clone(), k)) {
                 "?"
             } else {
                 ""
