@@ -7,15 +7,7 @@ use gap::{BaseEffect, Candidate, CandidateFamily, DiagnoseConfig};
 use scene::Scene;
 
 mod common;
-use common::scenes;
-
-fn backbone() -> springs::SpringParams {
-    springs::SpringParams {
-        threshold: 0.03,
-        max_springs: 20,
-        ..springs::SpringParams::reference_rope()
-    }
-}
+use common::{backbone, scenes};
 
 fn tiny(base: Vec<BaseEffect>) -> DiagnoseConfig {
     DiagnoseConfig {

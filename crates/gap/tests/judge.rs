@@ -4,7 +4,7 @@
 use gap::{Candidate, Comparison, DiagnoseConfig, RankedEffect, VerdictRule, judge};
 
 mod common;
-use common::scenes;
+use common::{backbone, scenes};
 
 fn refit(
     effect: &str,
@@ -112,11 +112,7 @@ fn rejudging_a_diagnosis_under_its_own_rule_reproduces_it() {
         signature_scenes: 1,
         ..DiagnoseConfig::default()
     };
-    let base = springs::SpringParams {
-        threshold: 0.03,
-        max_springs: 20,
-        ..springs::SpringParams::reference_rope()
-    };
+    let base = backbone();
     let (train, val) = (scenes(dataset::Split::Train), scenes(dataset::Split::Val));
     let d = gap::diagnose(&train, &val, &base, &cfg, &mut |_| {}).unwrap();
     let again = d.rejudge(d.config.rule).unwrap();

@@ -4,7 +4,7 @@
 use gap::{Candidate, DiagnoseConfig, Diagnosis};
 
 mod common;
-use common::scenes;
+use common::{backbone, scenes};
 
 fn tiny_diagnosis() -> Diagnosis {
     let cfg = DiagnoseConfig {
@@ -17,11 +17,7 @@ fn tiny_diagnosis() -> Diagnosis {
         probe: false,
         ..DiagnoseConfig::default()
     };
-    let base = springs::SpringParams {
-        threshold: 0.03,
-        max_springs: 20,
-        ..springs::SpringParams::reference_rope()
-    };
+    let base = backbone();
     let train = scenes(dataset::Split::Train);
     let val = scenes(dataset::Split::Val);
     gap::diagnose(&train, &val, &base, &cfg, &mut |_| {}).unwrap()

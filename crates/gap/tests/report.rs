@@ -4,7 +4,7 @@
 use gap::{Candidate, DiagnoseConfig};
 
 mod common;
-use common::scenes;
+use common::{backbone, scenes};
 
 #[test]
 fn report_json_has_the_documented_schema() {
@@ -19,11 +19,7 @@ fn report_json_has_the_documented_schema() {
         signature_scenes: 1,
         ..DiagnoseConfig::default()
     };
-    let base = springs::SpringParams {
-        threshold: 0.03,
-        max_springs: 20,
-        ..springs::SpringParams::reference_rope()
-    };
+    let base = backbone();
     let d = gap::diagnose(&train, &val, &base, &cfg, &mut |_| {}).unwrap();
     let v = serde_json::to_value(&d).unwrap();
     let verdict = v["verdict"].as_str().unwrap();

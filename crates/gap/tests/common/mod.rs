@@ -15,3 +15,13 @@ pub fn scenes(split: dataset::Split) -> Vec<Scene> {
         })
         .collect()
 }
+
+/// The rope backbone the tests diagnose: the reference rope's parameters with the fixture's
+/// spring threshold, m, and springs per particle.
+pub fn backbone() -> springs::SpringParams {
+    springs::SpringParams {
+        threshold: 0.03,
+        max_springs: 20,
+        ..springs::SpringParams::reference_rope()
+    }
+}
