@@ -6,6 +6,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::GapError;
 use crate::diagnose::{DiagnoseConfig, Diagnosis, RankedEffect, TieBreak};
+use crate::learnable::{Learnable, learnable_stage};
 use crate::stats::{
     Comparison, Rival, Verdict, VerdictRule, best_candidate, break_tie, decide, paired_shrinkage,
 };
@@ -21,6 +22,9 @@ pub struct Judgement {
     pub tie_break: Option<TieBreak>,
     /// The probe against the chosen candidate, when both exist.
     pub probe_vs_best: Option<Comparison>,
+    /// The network stage applied again ([`crate::add_learnable`]), when the report has a
+    /// network with its per-episode errors; `verdict` is the answer after it.
+    pub learnable: Option<Learnable>,
 }
 
 /// Whether the rule counts a refit as a significant improvement: against the control, and with
@@ -126,16 +130,20 @@ pub fn judge(
             .collect(),
         tie_break,
         probe_vs_best,
+        learnable: None,
     })
 }
 
 impl Diagnosis {
     /// The verdict this diagnosis would have reached under another `rule`, from its stored
     /// refits (no rollout or refit is repeated, so it takes microseconds). With the report's own
-    /// rule it reproduces the report's verdict, tie-break and probe comparison exactly. The
-    /// network stage ([`crate::add_learnable`]) is not re-applied: its comparison is with the
-    /// model the original verdict named. Errors on reports older than the per-episode errors
-    /// (2026-11-24) when a paired comparison needs them, and on a rule outside its range.
+    /// rule it reproduces the report's verdict, tie-break and probe comparison exactly. When the
+    /// report has a network stage ([`crate::add_learnable`]) with its per-episode errors, that
+    /// stage is applied again to the new verdict (compared with the model the new verdict
+    /// names); reports written before 2026-11-27 lack those errors, and their network stage is
+    /// not re-applied (`learnable` is `None`). Errors on reports older than the per-episode
+    /// errors of the refits (2026-11-24) when a paired comparison needs them, and on a rule
+    /// outside its range.
     ///
     /// ```no_run
     /// # fn demo(d: gap::Diagnosis) -> Result<(), gap::GapError> {
@@ -164,6 +172,22 @@ impl Diagnosis {
                     })
             })
             .collect::<Result<Vec<_>, _>>()?;
-        judge(&library, self.probe.as_ref(), &config)
+        let mut judged = judge(&library, self.probe.as_ref(), &config)?;
+        if let Some(l) = self
+            .learnable
+            .as_ref()
+            .filter(|l| !l.network_per_episode_mde_cm.is_empty())
+        {
+            let (verdict, learnable) = learnable_stage(
+                self,
+                &judged.verdict,
+                &rule,
+                &l.network_per_episode_mde_cm,
+                &l.backbone_per_episode_mde_cm,
+            )?;
+            judged.verdict = verdict;
+            judged.learnable = Some(learnable);
+        }
+        Ok(judged)
     }
 }

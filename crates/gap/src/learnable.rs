@@ -3,7 +3,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::{Comparison, Diagnosis, GapError, paired_shrinkage};
+use crate::{Comparison, Diagnosis, GapError, VerdictRule, paired_shrinkage};
 
 /// A trained residual network (backbone + residual velocities) on the diagnosis's held-out
 /// episodes.
@@ -22,6 +22,13 @@ pub struct Learnable {
     pub vs_model: Comparison,
     /// Whether this comparison turned a `none` verdict into `unknown`.
     pub changed_verdict: bool,
+    /// The network's held-out MDE per episode, cm (what [`Diagnosis::rejudge`] needs to apply
+    /// this stage again; empty in reports written before 2026-11-27).
+    #[serde(default)]
+    pub network_per_episode_mde_cm: Vec<f64>,
+    /// Its backbone's held-out MDE per episode, cm (empty in reports before 2026-11-27).
+    #[serde(default)]
+    pub backbone_per_episode_mde_cm: Vec<f64>,
 }
 
 /// Adds a trained network's held-out errors to a diagnosis.
@@ -46,6 +53,28 @@ pub fn add_learnable(
     network_mde_cm: &[f64],
     backbone_mde_cm: &[f64],
 ) -> Result<(), GapError> {
+    let (verdict, learnable) = learnable_stage(
+        d,
+        &d.verdict,
+        &d.config.rule,
+        network_mde_cm,
+        backbone_mde_cm,
+    )?;
+    d.verdict = verdict;
+    d.learnable = Some(learnable);
+    Ok(())
+}
+
+/// The network stage on `verdict` (the verdict stage's answer under `rule`): the verdict after
+/// it, and the comparisons. Shared by [`add_learnable`] and [`Diagnosis::rejudge`], which
+/// passes the verdict that another rule gives.
+pub(crate) fn learnable_stage(
+    d: &Diagnosis,
+    verdict: &str,
+    rule: &VerdictRule,
+    network_mde_cm: &[f64],
+    backbone_mde_cm: &[f64],
+) -> Result<(String, Learnable), GapError> {
     let n = d.episodes[1];
     if network_mde_cm.len() != n || backbone_mde_cm.len() != n {
         return Err(GapError::Config(format!(
@@ -56,30 +85,32 @@ pub fn add_learnable(
     }
     let (resamples, seed) = (d.config.resamples, d.config.seed ^ 0x006c_6561_726e);
     let vs_backbone = paired_shrinkage(backbone_mde_cm, network_mde_cm, resamples, seed)?;
-    let effect_verdict = d.ranking.iter().any(|r| r.effect == d.verdict);
-    let (model, reference) = match &d.how_far {
-        Some(h) if effect_verdict => (h.effect.clone(), &h.after.per_episode_mde_cm),
-        Some(h) => ("control".to_string(), &h.before.per_episode_mde_cm),
-        None => (
-            "backbone as given".to_string(),
-            &d.backbone_as_given.per_episode_mde_cm,
-        ),
+    // The verdict's own refit when it names an effect (its held-out errors are those of
+    // `how_far.after` when the diagnosis showed that effect), else the control.
+    let (model, reference) = match d.ranking.iter().find(|r| r.effect == verdict) {
+        Some(r) => (r.effect.clone(), &r.heldout_mde_per_episode_cm),
+        None => match &d.how_far {
+            Some(h) => ("control".to_string(), &h.before.per_episode_mde_cm),
+            None => (
+                "backbone as given".to_string(),
+                &d.backbone_as_given.per_episode_mde_cm,
+            ),
+        },
     };
     let vs_model = paired_shrinkage(reference, network_mde_cm, resamples, seed ^ 1)?;
-    let rule = d.config.rule;
     let changed_verdict =
-        d.verdict == "none" && vs_model.significant(rule.min_shrinkage.max(rule.probe_margin));
-    if changed_verdict {
-        d.verdict = "unknown".to_string();
-    }
+        verdict == "none" && vs_model.significant(rule.min_shrinkage.max(rule.probe_margin));
     let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
-    d.learnable = Some(Learnable {
+    let learnable = Learnable {
         backbone_mde_cm: mean(backbone_mde_cm),
         network_mde_cm: mean(network_mde_cm),
         vs_backbone,
         model,
         vs_model,
         changed_verdict,
-    });
-    Ok(())
+        network_per_episode_mde_cm: network_mde_cm.to_vec(),
+        backbone_per_episode_mde_cm: backbone_mde_cm.to_vec(),
+    };
+    let verdict = if changed_verdict { "unknown" } else { verdict };
+    Ok((verdict.to_string(), learnable))
 }

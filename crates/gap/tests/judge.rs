@@ -164,3 +164,67 @@ fn stored_bench_reports_are_reproduced_by_the_rule_they_were_judged_with() {
         assert_eq!(j.probe_vs_best, d.probe_vs_best, "{name}");
     }
 }
+
+/// The network stage is applied again on re-judging: under the report's rule it reproduces the
+/// stored stage exactly (after a JSON round trip), and when another rule drops the effect the
+/// network is compared with the control instead, and can turn that `none` into `unknown`.
+#[test]
+fn rejudging_applies_the_network_stage_again() {
+    let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data");
+    let text = std::fs::read_to_string(format!("{dir}/rope-plasticity-x64-seed1.json")).unwrap();
+    let mut d: gap::Diagnosis = serde_json::from_str(&text).unwrap();
+    assert_eq!(d.verdict, "plasticity");
+    let control = d
+        .how_far
+        .as_ref()
+        .unwrap()
+        .before
+        .per_episode_mde_cm
+        .clone();
+    // A network that halves the control's error on every episode.
+    let halved: Vec<f64> = control.iter().map(|e| 0.5 * e).collect();
+    let alone = d.backbone_as_given.per_episode_mde_cm.clone();
+    gap::add_learnable(&mut d, &halved, &alone).unwrap();
+    assert_eq!(d.verdict, "plasticity");
+    let stored = d.learnable.clone().unwrap();
+    assert_eq!(
+        (stored.model.as_str(), stored.changed_verdict),
+        ("plasticity", false)
+    );
+
+    let d: gap::Diagnosis = serde_json::from_str(&serde_json::to_string(&d).unwrap()).unwrap();
+    let j = d.rejudge(d.config.rule).unwrap();
+    assert_eq!(j.verdict, "plasticity");
+    assert_eq!(j.learnable.as_ref(), Some(&stored));
+
+    // The two significant refits gain 37-38 % and the probe nothing: a 45 % floor drops them,
+    // the verdict stage answers `none`, and the network, halving the control's error, makes it
+    // `unknown`.
+    let floor = |f: f64| VerdictRule {
+        min_shrinkage: f,
+        ..d.config.rule
+    };
+    let mut plain = d.clone();
+    plain.learnable = None;
+    assert_eq!(plain.rejudge(floor(0.45)).unwrap().verdict, "none");
+    assert!(plain.rejudge(floor(0.45)).unwrap().learnable.is_none());
+    let j = d.rejudge(floor(0.45)).unwrap();
+    let l = j.learnable.as_ref().unwrap();
+    assert_eq!(
+        (j.verdict.as_str(), l.model.as_str()),
+        ("unknown", "control")
+    );
+    assert!(l.changed_verdict && (l.vs_model.shrinkage - 0.5).abs() < 1e-9);
+    // Under a 60 % floor the network's 50 % is not enough: `none` stands.
+    let j = d.rejudge(floor(0.6)).unwrap();
+    assert_eq!(j.verdict, "none");
+    assert!(!j.learnable.unwrap().changed_verdict);
+
+    // A report from before the per-episode errors were stored: the stage is not re-applied.
+    let mut old = d.clone();
+    let l = old.learnable.as_mut().unwrap();
+    l.network_per_episode_mde_cm.clear();
+    l.backbone_per_episode_mde_cm.clear();
+    let j = old.rejudge(floor(0.45)).unwrap();
+    assert_eq!((j.verdict.as_str(), j.learnable), ("none", None));
+}
