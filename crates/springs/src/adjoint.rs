@@ -139,6 +139,38 @@ impl StepAdjoint {
         grad_x: &mut [Vec3],
         grad_v: &mut [Vec3],
     ) -> Result<(), SimError> {
+        self.vjp_inner(tape, grad_x, grad_v, None)
+    }
+
+    /// As [`Self::vjp`], and also adds the step's `∂L/∂k_s` to `grad_stiffness` (one entry per
+    /// spring, N/m, in the backbone's spring order): how the loss depends on each spring's
+    /// stiffness through this step's elastic forces, with the substep count held fixed. Summed
+    /// over a rollout's steps it is the gradient a per-spring stiffness fit needs (the
+    /// paper's "Diff. Spring-Mass" baseline, `fit::refine_stiffness`).
+    pub fn vjp_stiffness(
+        &self,
+        tape: &StepTape,
+        grad_x: &mut [Vec3],
+        grad_v: &mut [Vec3],
+        grad_stiffness: &mut [f32],
+    ) -> Result<(), SimError> {
+        if grad_stiffness.len() != self.springs.len() {
+            return Err(SimError::LengthMismatch {
+                what: "grad_stiffness",
+                expected: self.springs.len(),
+                got: grad_stiffness.len(),
+            });
+        }
+        self.vjp_inner(tape, grad_x, grad_v, Some(grad_stiffness))
+    }
+
+    fn vjp_inner(
+        &self,
+        tape: &StepTape,
+        grad_x: &mut [Vec3],
+        grad_v: &mut [Vec3],
+        mut grad_k: Option<&mut [f32]>,
+    ) -> Result<(), SimError> {
         let n = tape.n;
         if !tape.complete {
             return Err(SimError::TapeMismatch {
@@ -230,6 +262,10 @@ impl StepAdjoint {
                 let dl = lambda[b] - lambda[a];
                 let along = u * u.dot(dl);
                 let k = bb.stiffness[si];
+                if let Some(gk) = grad_k.as_deref_mut() {
+                    // f_a = k (l − l0) u = −f_b: ∂L/∂k = (λ_a − λ_b)·(l − l0) u.
+                    gk[si] -= (l - tape.rest[si]) * u.dot(dl);
+                }
                 // ∂(k (l − l0) u)/∂d = k [(1 − l0/l)(I − u uᵀ) + u uᵀ], symmetric.
                 let mut gd = k * ((1.0 - tape.rest[si] / l) * (dl - along) + along);
                 if let Some(v0) = v0 {
