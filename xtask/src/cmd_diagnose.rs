@@ -240,6 +240,13 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
     let t0 = Instant::now();
     let data = Dataset::open(&args.data)?;
     let backbone = read_backbone(&args.run)?;
+    // The diagnosis refits the global parameters, which a refined field was fitted for.
+    anyhow::ensure!(
+        backbone.refined.is_none(),
+        "{} holds a refined stiffness field (`cargo xtask refine`); diagnose the run it was \
+         refined from",
+        args.run.display()
+    );
     let protocol: Protocol = args.protocol.into();
     let train = scenes(&data, Split::Train, protocol)?;
     let val = scenes(&data, Split::Val, protocol)?;

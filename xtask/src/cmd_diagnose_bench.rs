@@ -542,6 +542,7 @@ fn base_model(
         wall_s: m.wall_s,
         session_wall_s: m.wall_s,
         effects: base.clone(),
+        refined: None,
     };
     Ok((m, base, file))
 }

@@ -152,6 +152,7 @@ pub fn run(args: &FitArgs) -> anyhow::Result<BackboneFile> {
         wall_s: generations_wall,
         session_wall_s: t0.elapsed().as_secs_f64(),
         effects: Vec::new(),
+        refined: None,
     };
     write_json(&backbone_path(&args.run), &file)?;
     println!(

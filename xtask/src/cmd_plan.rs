@@ -124,6 +124,13 @@ struct ModelReport {
 pub fn run(args: &PlanArgs) -> anyhow::Result<()> {
     let kind: TaskKind = args.task.parse()?;
     let backbone = read_backbone(&args.run)?;
+    // The field is per tracked particle of the training data; a task's rope has its own.
+    anyhow::ensure!(
+        backbone.refined.is_none(),
+        "{} holds a refined stiffness field (`cargo xtask refine`), which is placed on the \
+         training data's tracked particles; planning builds its rope from the task",
+        args.run.display()
+    );
     let net = read_residual(&args.run)?.map(std::sync::Arc::new);
     let models = if args.model.is_empty() {
         let mut m = vec![ModelArg::SpringMass];

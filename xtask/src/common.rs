@@ -74,12 +74,22 @@ pub struct BackboneFile {
     /// `diagnose --write-run` with the diagnosis's refitted parameters; empty for a plain fit).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub effects: Vec<gap::BaseEffect>,
+    /// The per-particle stiffness field refined by `cargo xtask refine` (the paper's "Diff.
+    /// Spring-Mass" baseline), with its history; absent for a plain fit.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub refined: Option<fit::RefineOutcome>,
 }
 
 impl BackboneFile {
-    /// The model's name in reports: `spring-mass`, or `spring-mass+drag+...` with effects.
+    /// The model's name in reports: `spring-mass`, or `spring-mass+drag+...` with effects;
+    /// `diff-spring-mass` for a refined stiffness field.
     pub fn label(&self) -> String {
-        std::iter::once(self.model.clone())
+        let model = if self.refined.is_some() {
+            "diff-spring-mass".to_string()
+        } else {
+            self.model.clone()
+        };
+        std::iter::once(model)
             .chain(self.effects.iter().map(|e| e.effect.name().to_string()))
             .collect::<Vec<_>>()
             .join("+")
@@ -94,8 +104,22 @@ impl BackboneFile {
         data: &Dataset,
         protocol: Protocol,
     ) -> anyhow::Result<residual::BackboneOptionsFn> {
+        let field = self
+            .refined
+            .as_ref()
+            .map(|r| std::sync::Arc::new(r.log_factor.clone()));
+        let with_field = move |mut options: springs::BackboneOptions| {
+            if let Some(f) = &field {
+                options.effects.push(Box::new(springs::StiffnessField {
+                    log_factor: f.clone(),
+                }));
+            }
+            options
+        };
         if self.effects.is_empty() {
-            return Ok(std::sync::Arc::new(springs::BackboneOptions::default));
+            return Ok(std::sync::Arc::new(move || {
+                with_field(springs::BackboneOptions::default())
+            }));
         }
         let train: Vec<Scene> = load_scenes(data, Split::Train, protocol, &SceneConfig::default())?
             .into_iter()
@@ -104,7 +128,7 @@ impl BackboneFile {
         let frame = gap::material_frame(&train)?;
         let effects = self.effects.clone();
         Ok(std::sync::Arc::new(move || {
-            gap::backbone_options(&effects, &frame)
+            with_field(gap::backbone_options(&effects, &frame))
         }))
     }
 }

@@ -16,6 +16,7 @@ mod cmd_gen;
 mod cmd_import;
 mod cmd_metrics;
 mod cmd_plan;
+mod cmd_refine;
 mod cmd_render;
 mod cmd_train;
 mod common;
@@ -42,6 +43,9 @@ enum Command {
     DiagnoseBench(cmd_diagnose::DiagnoseBenchArgs),
     /// Fit the backbone's parameters with CMA-ES on a dataset's train split.
     Fit(cmd_fit::FitArgs),
+    /// Refine a fitted run's stiffness per tracked particle by gradient descent through the
+    /// simulator (the paper's "Diff. Spring-Mass" baseline); writes a new run.
+    Refine(cmd_refine::RefineArgs),
     /// Evaluate a run's model on a split: MDE, Chamfer, EMD per step.
     Eval(cmd_eval::EvalArgs),
     /// Point-cloud metrics of two .npy clouds as JSON (MDE, Chamfer, EMD).
@@ -63,6 +67,7 @@ fn main() -> anyhow::Result<()> {
         Command::Diagnose(args) => cmd_diagnose::run(&args).map(drop),
         Command::DiagnoseBench(args) => cmd_diagnose::run_bench(&args).map(drop),
         Command::Fit(args) => cmd_fit::run(&args).map(drop),
+        Command::Refine(args) => cmd_refine::run(&args),
         Command::Eval(args) => cmd_eval::run(&args).map(drop),
         Command::Import(args) => cmd_import::run(&args),
         Command::Metrics(args) => cmd_metrics::run(&args),

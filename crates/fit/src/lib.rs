@@ -19,11 +19,19 @@
 //! - With a checkpoint path, the optimiser state is written atomically after every generation;
 //!   a later call with the same settings resumes from it and produces exactly the candidates
 //!   the uninterrupted run would have.
+//!
+//! [`refine_stiffness`] is the second stage of the paper's "Diff. Spring-Mass" baseline: a
+//! stiffness that varies over the object, refined by gradient descent through the simulator's
+//! adjoint.
 
 mod family;
+mod refine;
 mod run;
 
 pub use family::{BackboneFamily, Family};
+pub use refine::{
+    RefineConfig, RefineOutcome, RefineStep, field_options, refine_stiffness, scene_gradient,
+};
 pub use run::{
     Contender, FitConfig, FitError, FitOutcome, Generation, PENALTY, Rescore, fit, scene_loss,
 };

@@ -128,6 +128,15 @@ pub enum FitError {
         /// What went wrong.
         message: String,
     },
+    /// Settings or inputs that cannot work.
+    #[error("{0}")]
+    Config(String),
+    /// A scene could not be built.
+    #[error(transparent)]
+    Scene(#[from] scene::SceneError),
+    /// The simulator refused a model or failed a step.
+    #[error(transparent)]
+    Sim(#[from] springs::SimError),
 }
 
 #[derive(Serialize, Deserialize)]

@@ -195,3 +195,66 @@ impl Effect for AirDrag {
         }
     }
 }
+
+/// Spatially varying stiffness: every spring's stiffness multiplied by
+/// `exp((a_i + a_j) / 2)`, the geometric mean of its ends' factors `exp(a)`. `log_factor` holds
+/// `a` for the first particles (the tracked ones of a scene); every further particle (hidden or
+/// interior) takes the value of the nearest of them at rest. What the per-particle stiffness fit
+/// (`fit::refine_stiffness`, the paper's "Diff. Spring-Mass" baseline) adjusts.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StiffnessField {
+    /// Natural log of the stiffness factor per leading particle.
+    pub log_factor: std::sync::Arc<Vec<f32>>,
+}
+
+impl StiffnessField {
+    /// For every particle of a model whose rest positions are `rest`, the leading particle
+    /// whose factor it takes: itself among the first `lead`, else the nearest of them at rest
+    /// (ties: the lower index).
+    pub fn owners(lead: usize, rest: &[Vec3]) -> Vec<usize> {
+        let lead = lead.min(rest.len());
+        let mut owner: Vec<usize> = (0..lead).collect();
+        owner.extend(rest[lead..].iter().map(|p| {
+            rest[..lead]
+                .iter()
+                .enumerate()
+                .map(|(i, q)| (q.distance_squared(*p), i))
+                .min_by(|x, y| x.0.total_cmp(&y.0).then(x.1.cmp(&y.1)))
+                .map_or(0, |(_, i)| i)
+        }));
+        owner
+    }
+
+    /// The factor's log for every particle of a model whose rest positions are `rest`
+    /// ([`Self::owners`]).
+    pub fn per_particle(&self, rest: &[Vec3]) -> Result<Vec<f32>, SimError> {
+        let lead = self.log_factor.len();
+        if lead == 0 || rest.len() < lead || !self.log_factor.iter().all(|a| a.is_finite()) {
+            return Err(SimError::Effect {
+                name: "stiffness-field".into(),
+                message: format!(
+                    "{lead} finite log factors needed for a model of {} particles",
+                    rest.len()
+                ),
+            });
+        }
+        Ok(Self::owners(lead, rest)
+            .into_iter()
+            .map(|i| self.log_factor[i])
+            .collect())
+    }
+}
+
+impl Effect for StiffnessField {
+    fn name(&self) -> &str {
+        "stiffness-field"
+    }
+
+    fn setup(&mut self, model: &mut ModelSetup<'_>) -> Result<(), SimError> {
+        let a = self.per_particle(model.rest_positions)?;
+        for (k, &[i, j]) in model.stiffness.iter_mut().zip(model.springs) {
+            *k *= (0.5 * (a[i as usize] + a[j as usize])).exp();
+        }
+        Ok(())
+    }
+}
