@@ -70,12 +70,16 @@ pub struct RefineStep {
     /// Iteration index.
     pub iteration: usize,
     /// Mean loss of the iteration's batch before its update, m².
+    #[serde(deserialize_with = "null_as_nan")]
     pub batch_loss_m2: f64,
-    /// Norm of the batch's gradient with respect to the log factors.
+    /// Norm of the batch's gradient with respect to the log factors (not finite: the update
+    /// was skipped).
+    #[serde(deserialize_with = "null_as_nan")]
     pub grad_norm: f64,
     /// Scenes of the batch whose rollout failed (left out of the update).
     pub failed: usize,
-    /// Loss over every training scene, m², on the iterations where it was checked.
+    /// Loss over every training scene, m², on the iterations where it was checked (read back
+    /// as `None` where it was not finite: JSON has no infinity).
     pub train_loss_m2: Option<f64>,
 }
 
@@ -85,8 +89,11 @@ pub struct RefineOutcome {
     /// The kept field: log stiffness factor per tracked particle.
     pub log_factor: Vec<f32>,
     /// Its loss over every training scene, m².
+    #[serde(deserialize_with = "null_as_nan")]
     pub best_loss_m2: f64,
-    /// The loss of the fitted backbone without a field (all factors 0), m².
+    /// The loss of the fitted backbone without a field (all factors 0), m² (infinite when a
+    /// training episode's rollout fails).
+    #[serde(deserialize_with = "null_as_nan")]
     pub initial_loss_m2: f64,
     /// Iteration after which the kept field was checked (`None`: the zero field).
     pub best_iteration: Option<usize>,
@@ -242,7 +249,10 @@ pub fn refine_stiffness(
         }
         let check = (it + 1) % config.check_every == 0 || it + 1 == config.iterations;
         let train_loss = check.then(|| all_loss(&a));
-        if let Some(l) = train_loss.filter(|l| *l < outcome.best_loss_m2) {
+        // A best read back from a checkpoint as NaN (it was infinite) is beaten by any finite.
+        let beats =
+            |l: &f64| l.is_finite() && (outcome.best_loss_m2.is_nan() || *l < outcome.best_loss_m2);
+        if let Some(l) = train_loss.filter(beats) {
             outcome.best_loss_m2 = l;
             outcome.log_factor = a.clone();
             outcome.best_iteration = Some(it);
@@ -272,6 +282,12 @@ pub fn refine_stiffness(
     }
     outcome.config = config.clone();
     Ok(outcome)
+}
+
+/// JSON has no NaN or infinity: `serde_json` writes them as `null`, read back here as NaN, so
+/// a checkpoint or run file with a skipped update survives the round trip.
+fn null_as_nan<'de, D: serde::Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
+    Option::<f64>::deserialize(d).map(|v| v.unwrap_or(f64::NAN))
 }
 
 fn ck_error(path: &Path, message: impl ToString) -> FitError {

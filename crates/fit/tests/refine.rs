@@ -183,3 +183,43 @@ fn a_resumed_refinement_equals_an_uninterrupted_one() {
     assert!(refine_stiffness(&mixed, &params(), &cfg(1), None, &mut |_| {}).is_err());
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// A skipped update (non-finite gradient norm) and an infinite loss are written as JSON
+/// `null`; a checkpoint or run file holding them reads back.
+#[test]
+fn non_finite_records_survive_json() {
+    let step = fit::RefineStep {
+        iteration: 6,
+        batch_loss_m2: 1e-3,
+        grad_norm: f64::INFINITY,
+        failed: 0,
+        train_loss_m2: None,
+    };
+    let text = serde_json::to_string(&step).unwrap();
+    assert!(text.contains("\"grad_norm\":null"), "{text}");
+    let back: fit::RefineStep = serde_json::from_str(&text).unwrap();
+    assert!(back.grad_norm.is_nan());
+    assert_eq!(back.batch_loss_m2, 1e-3);
+}
+
+/// The batch's scenes run in parallel; the field does not depend on the thread count.
+#[test]
+fn the_field_does_not_depend_on_the_thread_count() {
+    let data = scenes(&truth_field(), 3);
+    let cfg = RefineConfig {
+        iterations: 10,
+        batch: 3,
+        check_every: 5,
+        ..RefineConfig::default()
+    };
+    let run = |threads: usize| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap()
+            .install(|| refine_stiffness(&data, &params(), &cfg, None, &mut |_| {}).unwrap())
+    };
+    let (one, two) = (run(1), run(2));
+    assert_eq!(one.log_factor, two.log_factor);
+    assert_eq!(one.history, two.history);
+}
