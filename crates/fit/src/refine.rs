@@ -29,6 +29,7 @@ use serde::{Deserialize, Serialize};
 use springs::{BackboneOptions, SpringParams, State, StepTape, StiffnessField};
 
 use crate::FitError;
+use crate::run::checkpoint_error;
 
 /// Settings of a stiffness refinement.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -175,14 +176,15 @@ pub fn refine_stiffness(
     };
     let (mut a, mut m, mut v, mut outcome) = match checkpoint.filter(|p| p.is_file()) {
         Some(path) => {
-            let text = std::fs::read_to_string(path).map_err(|e| ck_error(path, e))?;
-            let ck: Checkpoint = serde_json::from_str(&text).map_err(|e| ck_error(path, e))?;
+            let text = std::fs::read_to_string(path).map_err(|e| checkpoint_error(path, e))?;
+            let ck: Checkpoint =
+                serde_json::from_str(&text).map_err(|e| checkpoint_error(path, e))?;
             let same = RefineConfig {
                 iterations: config.iterations,
                 ..ck.config.clone()
             };
             if same != *config || ck.scenes != scenes.len() || ck.log_factor.len() != tracked {
-                return Err(ck_error(
+                return Err(checkpoint_error(
                     path,
                     "was written by a refinement with other settings or data; remove it to start afresh",
                 ));
@@ -275,8 +277,8 @@ pub fn refine_stiffness(
                 adam_v: v.clone(),
                 outcome: outcome.clone(),
             };
-            let text = serde_json::to_string(&ck).map_err(|e| ck_error(path, e))?;
-            dataset::write_atomic(path, text.as_bytes()).map_err(|e| ck_error(path, e))?;
+            let text = serde_json::to_string(&ck).map_err(|e| checkpoint_error(path, e))?;
+            dataset::write_atomic(path, text.as_bytes()).map_err(|e| checkpoint_error(path, e))?;
         }
         on_step(&record);
     }
@@ -288,13 +290,6 @@ pub fn refine_stiffness(
 /// a checkpoint or run file with a skipped update survives the round trip.
 fn null_as_nan<'de, D: serde::Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
     Option::<f64>::deserialize(d).map(|v| v.unwrap_or(f64::NAN))
-}
-
-fn ck_error(path: &Path, message: impl ToString) -> FitError {
-    FitError::Checkpoint {
-        path: path.display().to_string(),
-        message: message.to_string(),
-    }
 }
 
 /// The loss of one scene (mean squared position error over the first `steps` steps and the

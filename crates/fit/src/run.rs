@@ -160,7 +160,7 @@ pub fn scene_loss<F: Family>(family: &F, real: &[f64], scene: &Scene) -> f64 {
     }
 }
 
-fn checkpoint_error(path: &Path, message: impl ToString) -> FitError {
+pub(crate) fn checkpoint_error(path: &Path, message: impl ToString) -> FitError {
     FitError::Checkpoint {
         path: path.display().to_string(),
         message: message.to_string(),

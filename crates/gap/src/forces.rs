@@ -39,17 +39,10 @@ fn material_of_all(name: &str, material: &[f32], rest: &[Vec3]) -> Result<Vec<f3
             ),
         ));
     }
-    let mut u = material.to_vec();
-    for p in &rest[tracked..] {
-        let nearest = rest[..tracked]
-            .iter()
-            .enumerate()
-            .map(|(i, q)| (q.distance_squared(*p), i))
-            .min_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)))
-            .map_or(0, |(_, i)| i);
-        u.push(material[nearest]);
-    }
-    Ok(u)
+    Ok(springs::StiffnessField::owners(tracked, rest)
+        .into_iter()
+        .map(|i| material[i])
+        .collect())
 }
 
 /// Quadratic drag `F = −c |v| v` per particle (`c = ½ ρ C_d A`, kg/m, equal areas); the
