@@ -70,7 +70,8 @@ impl Default for RefineConfig {
 pub struct RefineStep {
     /// Iteration index.
     pub iteration: usize,
-    /// Mean loss of the iteration's batch before its update, m².
+    /// Mean loss of the iteration's batch before its update, m² (NaN when every rollout of the
+    /// batch failed).
     #[serde(deserialize_with = "null_as_nan")]
     pub batch_loss_m2: f64,
     /// Norm of the batch's gradient with respect to the log factors (not finite: the update
@@ -231,7 +232,8 @@ pub fn refine_stiffness(
             }
         }
         let count = ok.len().max(1) as f64;
-        loss /= count;
+        // Every rollout of the batch failed: no loss to report.
+        loss = if ok.is_empty() { f64::NAN } else { loss / count };
         for g in &mut grad {
             *g /= count;
         }
