@@ -233,7 +233,11 @@ pub fn refine_stiffness(
         }
         let count = ok.len().max(1) as f64;
         // Every rollout of the batch failed: no loss to report.
-        loss = if ok.is_empty() { f64::NAN } else { loss / count };
+        loss = if ok.is_empty() {
+            f64::NAN
+        } else {
+            loss / count
+        };
         for g in &mut grad {
             *g /= count;
         }
