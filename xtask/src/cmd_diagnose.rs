@@ -11,7 +11,7 @@ use gap::{BaseEffect, Candidate, DiagnoseConfig, Diagnosis};
 use scene::{Protocol, Scene, SceneConfig};
 
 use crate::common::{
-    ProtocolArg, backbone_path, load_scenes, predict_tracked, read_backbone, read_residual,
+    ProtocolArg, backbone_path, load_scenes, predict_tracked, read_backbone, read_residual, scenes,
 };
 use crate::report::write_json;
 
@@ -138,17 +138,6 @@ fn config_from(args: &DiagnoseArgs, run_effects: &[BaseEffect]) -> anyhow::Resul
         },
         ..DiagnoseConfig::default()
     })
-}
-
-pub(crate) fn scenes(
-    data: &Dataset,
-    split: Split,
-    protocol: Protocol,
-) -> anyhow::Result<Vec<Scene>> {
-    Ok(load_scenes(data, split, protocol, &SceneConfig::default())?
-        .into_iter()
-        .map(|(_, s)| s)
-        .collect())
 }
 
 /// Writes `<out>/report.json` and `<out>/report.html`.

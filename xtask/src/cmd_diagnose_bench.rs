@@ -30,8 +30,9 @@ use serde::Serialize;
 use springs::SpringParams;
 use world::{EffectKind, Effects, ObjectKind};
 
-use super::{scenes, write_report};
+use super::write_report;
 use crate::cmd_fit::BoundsArg;
+use crate::common::scenes;
 use crate::common::{BackboneFile, backbone_path, read_residual};
 use crate::report::write_json;
 

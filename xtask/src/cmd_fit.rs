@@ -7,9 +7,8 @@ use anyhow::Context;
 use dataset::{Dataset, Split};
 use fit::{BackboneFamily, FitConfig};
 use indicatif::{ProgressBar, ProgressStyle};
-use scene::SceneConfig;
 
-use crate::common::{BackboneFile, ProtocolArg, backbone_path, load_scenes, warn_if_unconnected};
+use crate::common::{BackboneFile, ProtocolArg, backbone_path, scenes, warn_if_unconnected};
 use crate::report::write_json;
 
 /// Arguments of `fit`.
@@ -80,15 +79,7 @@ impl BoundsArg {
 pub fn run(args: &FitArgs) -> anyhow::Result<BackboneFile> {
     let t0 = Instant::now();
     let data = Dataset::open(&args.data)?;
-    let scenes: Vec<_> = load_scenes(
-        &data,
-        Split::Train,
-        args.protocol.into(),
-        &SceneConfig::default(),
-    )?
-    .into_iter()
-    .map(|(_, s)| s)
-    .collect();
+    let scenes = scenes(&data, Split::Train, args.protocol.into())?;
     std::fs::create_dir_all(&args.run)
         .with_context(|| format!("creating {}", args.run.display()))?;
     let family = BackboneFamily::new(args.bounds.bounds())?;

@@ -9,9 +9,8 @@ use std::time::Instant;
 use anyhow::Context;
 use dataset::{Dataset, Split};
 use indicatif::{ProgressBar, ProgressStyle};
-use scene::SceneConfig;
 
-use crate::common::{ProtocolArg, backbone_path, load_scenes, read_backbone};
+use crate::common::{ProtocolArg, backbone_path, read_backbone, scenes};
 use crate::report::write_json;
 
 /// Arguments of `refine`.
@@ -76,15 +75,7 @@ pub fn run(args: &RefineArgs) -> anyhow::Result<()> {
         args.out != args.run,
         "--out must be a new run directory, not the fitted run"
     );
-    let scenes: Vec<_> = load_scenes(
-        &data,
-        Split::Train,
-        args.protocol.into(),
-        &SceneConfig::default(),
-    )?
-    .into_iter()
-    .map(|(_, s)| s)
-    .collect();
+    let scenes = scenes(&data, Split::Train, args.protocol.into())?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
     let config = fit::RefineConfig {

@@ -51,6 +51,14 @@ pub fn load_scenes(
         .collect()
 }
 
+/// The scenes of a split with the default scene settings, without their episode indices.
+pub fn scenes(data: &Dataset, split: Split, protocol: Protocol) -> anyhow::Result<Vec<Scene>> {
+    Ok(load_scenes(data, split, protocol, &SceneConfig::default())?
+        .into_iter()
+        .map(|(_, s)| s)
+        .collect())
+}
+
 /// The fitted backbone of a run: `<run>/backbone.json`.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct BackboneFile {
@@ -121,10 +129,7 @@ impl BackboneFile {
                 with_field(springs::BackboneOptions::default())
             }));
         }
-        let train: Vec<Scene> = load_scenes(data, Split::Train, protocol, &SceneConfig::default())?
-            .into_iter()
-            .map(|(_, s)| s)
-            .collect();
+        let train = scenes(data, Split::Train, protocol)?;
         let frame = gap::material_frame(&train)?;
         let effects = self.effects.clone();
         Ok(std::sync::Arc::new(move || {
