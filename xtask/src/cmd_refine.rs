@@ -47,6 +47,11 @@ pub struct RefineArgs {
     /// Seed of the episode sampling.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// Scale each episode's gradient to unit norm before the batch mean, so that one episode
+    /// whose contacts switched or whose adjoint grew cannot take the step (`false`: the plain
+    /// mean, the gradient of the batch's loss).
+    #[arg(long, default_value_t = true, action = clap::ArgAction::Set)]
+    pub scene_norm: bool,
     /// Window of each training episode.
     #[arg(long, value_enum, default_value_t = ProtocolArg::Paper)]
     pub protocol: ProtocolArg,
@@ -86,6 +91,7 @@ pub fn run(args: &RefineArgs) -> anyhow::Result<()> {
         steps: args.steps,
         check_every: args.check_every,
         seed: args.seed,
+        scene_norm: args.scene_norm,
     };
     let checkpoint = args.out.join("refine.checkpoint.json");
     let bar = if args.quiet {
@@ -132,6 +138,26 @@ pub fn run(args: &RefineArgs) -> anyhow::Result<()> {
         outcome.best_loss_m2,
         outcome.best_iteration,
     );
+    if kept.is_none() {
+        let mut norms: Vec<f64> = outcome
+            .history
+            .iter()
+            .map(|s| s.grad_norm)
+            .filter(|g| g.is_finite())
+            .collect();
+        norms.sort_by(f64::total_cmp);
+        eprintln!(
+            "no checked field beat the fitted backbone; batch gradient norms: median {:.1e}, largest finite {:.1e}. \
+             Where contacts switch or the window is long the gradient says little: try --steps (a shorter window){}",
+            norms.get(norms.len() / 2).copied().unwrap_or(f64::NAN),
+            norms.last().copied().unwrap_or(f64::NAN),
+            if config.scene_norm {
+                ""
+            } else {
+                " or --scene-norm true"
+            }
+        );
+    }
     file.dataset = args.data.display().to_string();
     file.refined = Some(outcome);
     write_json(&backbone_path(&args.out), &file)?;

@@ -11,6 +11,7 @@
 //! Each iteration rolls `batch` training scenes out with the step tapes kept, takes the mean
 //! squared position error over the window (the CMA-ES stage's loss), carries its adjoint back
 //! through every step ([`springs::StepAdjoint::vjp_stiffness`]) and moves the field by Adam.
+//! With [`RefineConfig::scene_norm`] every scene's gradient is scaled to unit norm first.
 //! Contacts switching within a step are not differentiable: the gradient is that of the smooth
 //! piece each step is on. The field with the lowest loss over all training scenes, checked
 //! every [`RefineConfig::check_every`] iterations, is kept.
@@ -49,6 +50,12 @@ pub struct RefineConfig {
     pub check_every: usize,
     /// Seed of the scene sampling.
     pub seed: u64,
+    /// Scale each scene's gradient to unit norm before the batch mean ([`batch_gradient`]):
+    /// one scene whose contacts switched, or whose adjoint grew, then cannot take Adam's step
+    /// and inflate its second moment for the iterations after. On by default; files written
+    /// before it existed read back with it off (they used the plain mean).
+    #[serde(default)]
+    pub scene_norm: bool,
 }
 
 impl Default for RefineConfig {
@@ -61,6 +68,7 @@ impl Default for RefineConfig {
             steps: None,
             check_every: 25,
             seed: 0,
+            scene_norm: true,
         }
     }
 }
@@ -74,8 +82,8 @@ pub struct RefineStep {
     /// batch failed).
     #[serde(deserialize_with = "null_as_nan")]
     pub batch_loss_m2: f64,
-    /// Norm of the batch's gradient with respect to the log factors (not finite: the update
-    /// was skipped).
+    /// Norm of the batch's mean gradient with respect to the log factors, before any
+    /// per-scene normalisation (not finite: the update was skipped).
     #[serde(deserialize_with = "null_as_nan")]
     pub grad_norm: f64,
     /// Scenes of the batch whose rollout failed (left out of the update).
@@ -223,25 +231,22 @@ pub fn refine_stiffness(
             .collect();
         let ok: Vec<&(f64, Vec<f64>)> = results.iter().flatten().collect();
         let failed = results.len() - ok.len();
-        let mut grad = vec![0.0f64; tracked];
-        let mut loss = 0.0;
-        for (l, g) in &ok {
-            loss += l;
-            for (acc, gi) in grad.iter_mut().zip(g) {
-                *acc += gi;
-            }
-        }
-        let count = ok.len().max(1) as f64;
         // Every rollout of the batch failed: no loss to report.
-        loss = if ok.is_empty() {
+        let loss = if ok.is_empty() {
             f64::NAN
         } else {
-            loss / count
+            ok.iter().map(|(l, _)| l).sum::<f64>() / ok.len() as f64
         };
-        for g in &mut grad {
-            *g /= count;
-        }
-        let grad_norm = grad.iter().map(|g| g * g).sum::<f64>().sqrt();
+        let grads: Vec<&[f64]> = ok.iter().map(|(_, g)| g.as_slice()).collect();
+        let grad = batch_gradient(&grads, tracked, config.scene_norm);
+        // Recorded before any normalisation: the size of the gradient is what tells a useful
+        // one from a grown one.
+        let raw = if config.scene_norm {
+            batch_gradient(&grads, tracked, false)
+        } else {
+            grad.clone()
+        };
+        let grad_norm = raw.iter().map(|g| g * g).sum::<f64>().sqrt();
         // A gradient the adjoint let grow to infinity says nothing about the direction.
         if !ok.is_empty() && grad_norm.is_finite() {
             let step = (it + 1) as i32;
@@ -290,6 +295,34 @@ pub fn refine_stiffness(
     }
     outcome.config = config.clone();
     Ok(outcome)
+}
+
+/// The batch's update direction: the mean of the scenes' gradients (`len` entries each), every
+/// one first scaled to unit norm when `scene_norm`. A scene whose gradient is zero or not finite
+/// keeps it unscaled (a non-finite one makes the mean non-finite, and the update is skipped).
+///
+/// ```
+/// let g = fit::batch_gradient(&[&[3.0, 4.0], &[0.0, 1e6]], 2, true);
+/// assert!((g[0] - 0.3).abs() < 1e-12 && (g[1] - 0.9).abs() < 1e-12);
+/// ```
+pub fn batch_gradient(grads: &[&[f64]], len: usize, scene_norm: bool) -> Vec<f64> {
+    let mut mean = vec![0.0f64; len];
+    for g in grads {
+        let norm = g.iter().map(|x| x * x).sum::<f64>().sqrt();
+        let scale = if scene_norm && norm.is_finite() && norm > 0.0 {
+            1.0 / norm
+        } else {
+            1.0
+        };
+        for (acc, x) in mean.iter_mut().zip(g.iter()) {
+            *acc += x * scale;
+        }
+    }
+    let count = grads.len().max(1) as f64;
+    for x in &mut mean {
+        *x /= count;
+    }
+    mean
 }
 
 /// JSON has no NaN or infinity: `serde_json` writes them as `null`, read back here as NaN, so

@@ -121,6 +121,7 @@ fn refinement_lowers_the_loss_and_is_deterministic() {
         batch: 2,
         learning_rate: 0.05,
         check_every: 20,
+        scene_norm: false,
         ..RefineConfig::default()
     };
     let out = refine_stiffness(&data, &params(), &cfg, None, &mut |_| {}).unwrap();
@@ -223,4 +224,54 @@ fn the_field_does_not_depend_on_the_thread_count() {
     let (one, two) = (run(1), run(2));
     assert_eq!(one.log_factor, two.log_factor);
     assert_eq!(one.history, two.history);
+}
+
+/// Per-scene normalisation: a scene whose gradient grew a million times does not decide the
+/// direction, a non-finite one still skips the update, and without it the mean is plain.
+#[test]
+fn scene_norm_keeps_one_grown_gradient_from_taking_the_step() {
+    let small: [f64; 3] = [0.0, 3e-3, 4e-3];
+    let grown: [f64; 3] = [1e3, 0.0, 0.0];
+    let plain = fit::batch_gradient(&[&small, &grown], 3, false);
+    assert!(plain[0] > 1e3 * plain[2], "{plain:?}");
+    let normed = fit::batch_gradient(&[&small, &grown], 3, true);
+    let expect = [0.5, 0.3, 0.4];
+    for (g, e) in normed.iter().zip(expect) {
+        assert!((g - e).abs() < 1e-12, "{normed:?}");
+    }
+    let bad: [f64; 3] = [f64::INFINITY, 0.0, 0.0];
+    assert!(!fit::batch_gradient(&[&small, &bad], 3, true)[0].is_finite());
+    let zero = [0.0f64; 3];
+    assert_eq!(fit::batch_gradient(&[&zero], 3, true), vec![0.0; 3]);
+}
+
+/// With normalised scene gradients the refinement still descends, and run files written
+/// before the option existed read back with it off.
+#[test]
+fn a_normalised_refinement_lowers_the_loss_and_old_configs_read_back() {
+    let data = scenes(&truth_field(), 4);
+    let cfg = RefineConfig {
+        iterations: 60,
+        batch: 2,
+        check_every: 20,
+        scene_norm: true,
+        ..RefineConfig::default()
+    };
+    let out = refine_stiffness(&data, &params(), &cfg, None, &mut |_| {}).unwrap();
+    assert!(
+        out.best_loss_m2 < 0.3 * out.initial_loss_m2,
+        "{:.3e} -> {:.3e}",
+        out.initial_loss_m2,
+        out.best_loss_m2
+    );
+    let mut old = serde_json::to_value(RefineConfig::default()).unwrap();
+    old.as_object_mut().unwrap().remove("scene_norm");
+    let back: RefineConfig = serde_json::from_value(old).unwrap();
+    assert_eq!(
+        back,
+        RefineConfig {
+            scene_norm: false,
+            ..RefineConfig::default()
+        }
+    );
 }
