@@ -241,12 +241,12 @@ pub fn refine_stiffness(
         let grad = batch_gradient(&grads, tracked, config.scene_norm);
         // Recorded before any normalisation: the size of the gradient is what tells a useful
         // one from a grown one.
-        let raw = if config.scene_norm {
-            batch_gradient(&grads, tracked, false)
+        let norm = |g: &[f64]| g.iter().map(|x| x * x).sum::<f64>().sqrt();
+        let grad_norm = if config.scene_norm {
+            norm(&batch_gradient(&grads, tracked, false))
         } else {
-            grad.clone()
+            norm(&grad)
         };
-        let grad_norm = raw.iter().map(|g| g * g).sum::<f64>().sqrt();
         // A gradient the adjoint let grow to infinity says nothing about the direction.
         if !ok.is_empty() && grad_norm.is_finite() {
             let step = (it + 1) as i32;
