@@ -71,12 +71,6 @@ pub fn run(args: &RefineArgs) -> anyhow::Result<()> {
         args.run.display()
     );
     anyhow::ensure!(
-        file.effects.is_empty(),
-        "{} carries library effects ({}); the refinement differentiates the plain backbone only",
-        args.run.display(),
-        file.label()
-    );
-    anyhow::ensure!(
         args.out != args.run,
         "--out must be a new run directory, not the fitted run"
     );
@@ -103,9 +97,13 @@ pub fn run(args: &RefineArgs) -> anyhow::Result<()> {
         "refine {bar:30} {pos}/{len} iterations  {msg}  [{elapsed} < {eta}]",
     )?);
     let mut last_check = None;
+    // The run's effects, if any, at their fitted values: the field is refined on top of them
+    // (refused when the adjoint would hold one of them fixed).
+    let model = file.options_for(&data, args.protocol.into())?;
     let outcome = fit::refine_stiffness(
         &scenes,
         &file.params,
+        &*model,
         &config,
         Some(&checkpoint),
         &mut |s| {

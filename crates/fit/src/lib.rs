@@ -30,8 +30,8 @@ mod run;
 
 pub use family::{BackboneFamily, Family};
 pub use refine::{
-    RefineConfig, RefineOutcome, RefineStep, batch_gradient, field_options, refine_stiffness,
-    scene_gradient,
+    ModelOptions, RefineConfig, RefineOutcome, RefineStep, batch_gradient, field_options,
+    refine_stiffness, scene_gradient,
 };
 pub use run::{
     Contender, FitConfig, FitError, FitOutcome, Generation, PENALTY, Rescore, fit, scene_loss,

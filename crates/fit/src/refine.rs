@@ -15,6 +15,11 @@
 //! Contacts switching within a step are not differentiable: the gradient is that of the smooth
 //! piece each step is on. The field with the lowest loss over all training scenes, checked
 //! every [`RefineConfig::check_every`] iterations, is kept.
+//!
+//! The field can sit on a backbone that carries effects (a diagnosis's refitted drag, bending,
+//! ...): `model` builds those options and the field is added to them. Every effect must be one
+//! whose forces the adjoint differentiates ([`springs::Effect::adjoint_exact`]); a refinement
+//! through a model whose adjoint holds some effect fixed is refused.
 
 use std::path::Path;
 use std::sync::Arc;
@@ -128,29 +133,40 @@ struct Checkpoint {
 /// The backbone options of a field (for [`Scene::rollout`] and everything that builds a
 /// backbone of a refined run).
 pub fn field_options(log_factor: &[f32]) -> BackboneOptions {
-    BackboneOptions {
-        masses: None,
-        effects: vec![Box::new(StiffnessField {
-            log_factor: Arc::new(log_factor.to_vec()),
-        })],
-    }
+    with_field(&BackboneOptions::default, log_factor)
+}
+
+/// The backbone options of a model before its field: effects and masses
+/// ([`BackboneOptions::default`] for the plain spring-mass backbone).
+pub type ModelOptions = dyn Fn() -> BackboneOptions + Sync;
+
+/// The field's options added to a model's.
+fn with_field(model: &ModelOptions, log_factor: &[f32]) -> BackboneOptions {
+    let mut options = model();
+    options.effects.push(Box::new(StiffnessField {
+        log_factor: Arc::new(log_factor.to_vec()),
+    }));
+    options
 }
 
 /// Refines a per-particle stiffness field on `scenes` (every one tracking the same number of
-/// particles) for the fitted `params`. With a checkpoint path, the state is written
+/// particles) for the fitted `params` of the backbone `model` builds (its effects, if any, at
+/// their fixed values). With a checkpoint path, the state is written
 /// atomically at every check; a later call with the same settings resumes from it and ends
 /// where the uninterrupted run would have. `on_step` sees every iteration (for progress).
 ///
 /// ```no_run
 /// # fn demo(train: &[scene::Scene], params: &springs::SpringParams) -> Result<(), fit::FitError> {
 /// let cfg = fit::RefineConfig { iterations: 100, ..Default::default() };
-/// let out = fit::refine_stiffness(train, params, &cfg, None, &mut |_| {})?;
+/// let plain = springs::BackboneOptions::default;
+/// let out = fit::refine_stiffness(train, params, &plain, &cfg, None, &mut |_| {})?;
 /// println!("{:.3e} -> {:.3e} m²", out.initial_loss_m2, out.best_loss_m2);
 /// # Ok(()) }
 /// ```
 pub fn refine_stiffness(
     scenes: &[Scene],
     params: &SpringParams,
+    model: &ModelOptions,
     config: &RefineConfig,
     checkpoint: Option<&Path>,
     on_step: &mut dyn FnMut(&RefineStep),
@@ -173,12 +189,22 @@ pub fn refine_stiffness(
             "learning rate and factor bound must be > 0".into(),
         ));
     }
+    let bb = first.backbone(params, &first.sim_config(), model())?;
+    let held = bb.held_fixed_effects();
+    if !held.is_empty() {
+        return Err(FitError::Config(format!(
+            "the adjoint holds the forces of {} fixed, so the field's gradient would be wrong; \
+             refine a model without them",
+            held.join(", ")
+        )));
+    }
     let t0 = Instant::now();
     let all_loss = |a: &[f32]| -> f64 {
         let losses: Vec<f64> = scenes
             .par_iter()
             .map(|s| {
-                scene_gradient(s, params, a, config.steps, false).map_or(f64::INFINITY, |g| g.0)
+                scene_gradient(s, params, model, a, config.steps, false)
+                    .map_or(f64::INFINITY, |g| g.0)
             })
             .collect();
         losses.iter().sum::<f64>() / scenes.len() as f64
@@ -227,7 +253,7 @@ pub fn refine_stiffness(
         picked.sort_unstable();
         let results: Vec<Option<(f64, Vec<f64>)>> = picked
             .par_iter()
-            .map(|&s| scene_gradient(&scenes[s], params, &a, config.steps, true).ok())
+            .map(|&s| scene_gradient(&scenes[s], params, model, &a, config.steps, true).ok())
             .collect();
         let ok: Vec<&(f64, Vec<f64>)> = results.iter().flatten().collect();
         let failed = results.len() - ok.len();
@@ -332,16 +358,17 @@ fn null_as_nan<'de, D: serde::Deserializer<'de>>(d: D) -> Result<f64, D::Error> 
 }
 
 /// The loss of one scene (mean squared position error over the first `steps` steps and the
-/// particles seen, m²) with the field `log_factor`, and, when `with_gradient`, its gradient
+/// particles seen, m²) with the field `log_factor` added to `model`'s backbone, and, when `with_gradient`, its gradient
 /// with respect to every log factor. Errors when the rollout fails or is not finite.
 pub fn scene_gradient(
     scene: &Scene,
     params: &SpringParams,
+    model: &ModelOptions,
     log_factor: &[f32],
     steps: Option<usize>,
     with_gradient: bool,
 ) -> Result<(f64, Vec<f64>), FitError> {
-    let bb = scene.backbone(params, &scene.sim_config(), field_options(log_factor))?;
+    let bb = scene.backbone(params, &scene.sim_config(), with_field(model, log_factor))?;
     let steps = steps.map_or(scene.window.steps, |s| s.min(scene.window.steps));
     let n = bb.num_particles();
     let tracked = scene.tracked;

@@ -7,7 +7,8 @@ use std::sync::Arc;
 
 use glam::{Vec3, Vec3A};
 use springs::{
-    Backbone, Effect, GROUND_VISCOUS_FRICTION, GroundContact, ModelSetup, SimError, SubstepContext,
+    AdjointContext, Backbone, Effect, GROUND_VISCOUS_FRICTION, GroundContact, ModelSetup, SimError,
+    SubstepContext,
 };
 
 fn bad(name: &str, message: String) -> SimError {
@@ -76,6 +77,35 @@ impl Effect for QuadraticDrag {
             }
         }
     }
+    fn adjoint_exact(&self) -> bool {
+        true
+    }
+    fn force_vjp(
+        &self,
+        ctx: &AdjointContext<'_>,
+        lambda: &[Vec3A],
+        _gx: &mut [Vec3A],
+        grad_v: &mut [Vec3A],
+    ) {
+        let c = self.coefficient.abs();
+        for ((g, (v, l)), m) in grad_v
+            .iter_mut()
+            .zip(ctx.v.iter().zip(lambda))
+            .zip(ctx.masses)
+        {
+            let speed = v.length();
+            if speed == 0.0 {
+                continue;
+            }
+            if c * speed * speed <= m * speed / ctx.dt {
+                // f = −c |v| v: ∂f/∂v = −c (|v| I + v vᵀ / |v|), symmetric.
+                *g -= c * (speed * *l + *v * (v.dot(*l) / speed));
+            } else {
+                // Capped: f = −(m / dt) v.
+                *g -= *l * (m / ctx.dt);
+            }
+        }
+    }
 }
 
 /// Per-spring stiffness `k_s = k exp(a ū_s)`, `ū_s` the mean material coordinate of the
@@ -99,6 +129,9 @@ impl Effect for StiffnessGradient {
             *k *= (self.slope * 0.5 * (u[*a as usize] + u[*b as usize])).exp();
         }
         Ok(())
+    }
+    fn adjoint_exact(&self) -> bool {
+        true // setup only
     }
 }
 
@@ -125,6 +158,9 @@ impl Effect for MassGradient {
             *m *= w / mean;
         }
         Ok(())
+    }
+    fn adjoint_exact(&self) -> bool {
+        true // setup only
     }
 }
 
@@ -272,6 +308,35 @@ impl Effect for BendingSprings {
                 let f = d * (self.stiffness * (l - l0) / l);
                 force[a] += f;
                 force[b] -= f;
+            }
+        }
+    }
+    fn adjoint_exact(&self) -> bool {
+        true
+    }
+    fn force_vjp(
+        &self,
+        ctx: &AdjointContext<'_>,
+        lambda: &[Vec3A],
+        grad_x: &mut [Vec3A],
+        _gv: &mut [Vec3A],
+    ) {
+        if self.stiffness == 0.0 {
+            return;
+        }
+        for ([a, b], l0) in self.pairs.iter().zip(&self.rest) {
+            let (a, b) = (*a as usize, *b as usize);
+            let d = ctx.x[b] - ctx.x[a];
+            let l = d.length();
+            if l > 0.0 {
+                // f_a = k (l − l0) u = −f_b, u = d / l, d = x_b − x_a; its Jacobian in d,
+                // k [(1 − l0/l)(I − u uᵀ) + u uᵀ], is symmetric.
+                let u = d / l;
+                let dl = lambda[b] - lambda[a];
+                let along = u * u.dot(dl);
+                let gd = self.stiffness * ((1.0 - l0 / l) * (dl - along) + along);
+                grad_x[a] += gd;
+                grad_x[b] -= gd;
             }
         }
     }
@@ -623,6 +688,32 @@ impl Effect for ExternalField {
             *f += (a0 + r * self.gradient) * (window * *m);
         }
     }
+    fn adjoint_exact(&self) -> bool {
+        true
+    }
+    fn force_vjp(
+        &self,
+        ctx: &AdjointContext<'_>,
+        lambda: &[Vec3A],
+        grad_x: &mut [Vec3A],
+        _gv: &mut [Vec3A],
+    ) {
+        let a0 = Vec3A::from(self.uniform);
+        let c = Vec3A::from(self.centre);
+        let inv = 1.0 / (2.0 * self.width * self.width);
+        for ((g, (x, l)), m) in grad_x
+            .iter_mut()
+            .zip(ctx.x.iter().zip(lambda))
+            .zip(ctx.masses)
+        {
+            // f = m w(x) (a₀ + g r), r = x − c, w = exp(−|r|² / 2w²), ∇w = −2 w r inv:
+            // λᵀ ∂f/∂x = m (w g λ + ∇w (λ·(a₀ + g r))).
+            let r = *x - c;
+            let window = (-r.length_squared() * inv).exp();
+            let grad_w = r * (-2.0 * window * inv);
+            *g += (*l * (window * self.gradient) + grad_w * l.dot(a0 + r * self.gradient)) * *m;
+        }
+    }
 }
 
 /// Beyond the nine effects: gravity scaled by a factor `s`, i.e. an extra force
@@ -655,5 +746,8 @@ impl Effect for GravityScale {
         for (f, m) in force.iter_mut().zip(ctx.backbone.masses()) {
             *f += extra * *m;
         }
+    }
+    fn adjoint_exact(&self) -> bool {
+        true // a constant force: nothing to carry back
     }
 }

@@ -7,16 +7,21 @@
 //! output back to its input `(∂L/∂x, ∂L/∂v)` through the same substeps in reverse. It is the
 //! exact transpose of the step's linearisation in the elastic forces, the implicit (or
 //! explicit) dashpots (directions included), gravity, the ground's penalty force, normal
-//! damping and friction, the kinematic grasp and the final clamp. Held fixed (their derivatives are left out): effects' forces (and a friction
-//! effect's law, taken as its recorded speed ratio), pushing, obstacles and a compliant grasp;
+//! damping and friction, the kinematic grasp and the final clamp, and the forces of every
+//! effect that gives its own transpose ([`crate::Effect::adjoint_exact`]: drag, bending springs,
+//! fields, and every effect that acts only at construction). Held fixed (their derivatives
+//! are left out): the other effects' forces ([`Backbone::held_fixed_effects`]; a friction
+//! effect's law is taken as its recorded speed ratio), pushing, obstacles and a compliant grasp;
 //! with `SimConfig::partitions > 1` the sweeps are transposed in the unsplit order. A contact
 //! that switches within the step is not differentiable: this is the gradient of the smooth
 //! piece the step is on. `docs/physics.md`, "The step's adjoint".
 
+use std::sync::Arc;
+
 use glam::{Vec3, Vec3A};
 
 use crate::params::GROUND_STIFFNESS;
-use crate::{Backbone, SimError};
+use crate::{AdjointContext, Backbone, Effect, SimError};
 
 /// What one [`Backbone::step_taped`] recorded for [`StepAdjoint::vjp`]. Reusable: each taped step
 /// overwrites it.
@@ -86,6 +91,10 @@ pub struct StepAdjoint {
     explicit_damping: bool,
     has_damping: bool,
     friction_effect: bool,
+    /// The effects whose forces the adjoint differentiates ([`Effect::adjoint_exact`]).
+    effects: Vec<Arc<dyn Effect>>,
+    masses: Vec<f32>,
+    gravity: Vec3,
 }
 
 impl Backbone {
@@ -106,7 +115,26 @@ impl Backbone {
             explicit_damping: self.explicit_damping,
             has_damping: self.has_damping,
             friction_effect: self.friction_effect.is_some(),
+            effects: self
+                .effects
+                .iter()
+                .filter(|e| e.adjoint_exact())
+                .cloned()
+                .collect(),
+            masses: self.masses.clone(),
+            gravity: self.config.gravity,
         }
+    }
+
+    /// Names of the effects whose forces [`StepAdjoint`] holds fixed (their
+    /// [`Effect::adjoint_exact`] is false): with none, the adjoint is the exact transpose of the
+    /// step's linearisation (up to contacts that switch within it).
+    pub fn held_fixed_effects(&self) -> Vec<&str> {
+        self.effects
+            .iter()
+            .filter(|e| !e.adjoint_exact())
+            .map(|e| e.name())
+            .collect()
     }
 }
 
@@ -180,6 +208,12 @@ impl StepAdjoint {
         if n != self.inv_mass.len() || tape.rest.len() != self.springs.len() {
             return Err(SimError::TapeMismatch {
                 reason: "recorded by a backbone of another size",
+            });
+        }
+        let needs_start_velocities = self.explicit_damping || !self.effects.is_empty();
+        if needs_start_velocities && tape.v_start.len() != n * tape.substeps {
+            return Err(SimError::TapeMismatch {
+                reason: "recorded by a backbone without these dashpots or effects",
             });
         }
         for (what, len) in [("grad_x", grad_x.len()), ("grad_v", grad_v.len())] {
@@ -284,6 +318,18 @@ impl StepAdjoint {
                     if inv_m[i] > 0.0 && x0[i].z < h {
                         ax[i].z -= GROUND_STIFFNESS * lambda[i].z;
                     }
+                }
+            }
+            if !bb.effects.is_empty() {
+                let ctx = AdjointContext {
+                    dt,
+                    x: x0,
+                    v: &tape.v_start[s * n..(s + 1) * n],
+                    masses: &bb.masses,
+                    gravity: bb.gravity,
+                };
+                for e in &bb.effects {
+                    e.force_vjp(&ctx, &lambda, &mut ax, &mut av);
                 }
             }
         }

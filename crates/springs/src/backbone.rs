@@ -50,7 +50,8 @@ pub struct Backbone {
     pub(crate) has_damping: bool,
     /// Dashpot forces go into the elastic pass ([`Dashpot::Explicit`] and some damping > 0).
     pub(crate) explicit_damping: bool,
-    pub(crate) effects: Vec<Box<dyn Effect>>,
+    /// Shared so that [`crate::StepAdjoint`] can hold them too.
+    pub(crate) effects: Vec<std::sync::Arc<dyn Effect>>,
     pub(crate) friction_effect: Option<usize>,
     pub(crate) compliant_grasp: bool,
     /// Slabs for a split rollout (`config.partitions > 1`).
@@ -191,7 +192,7 @@ impl Backbone {
             dt: config.step_dt,
             has_damping: false,
             explicit_damping: false,
-            effects,
+            effects: effects.into_iter().map(std::sync::Arc::from).collect(),
             friction_effect,
             compliant_grasp,
             partition,

@@ -10,6 +10,12 @@
 //! turns kinematic grasping off so that the effect can attach held particles with forces.
 //! Per-rollout mutable data lives in the state from [`Effect::new_state`], which the
 //! [`crate::Scratch`] owns. With no effects none of this code runs.
+//!
+//! The step's adjoint ([`crate::StepAdjoint`]) differentiates an effect when it says so
+//! ([`Effect::adjoint_exact`]): an effect that acts only in `setup` needs nothing more (its
+//! changes are in the backbone's arrays, which the adjoint reads); one with forces gives the
+//! transpose of their Jacobian in [`Effect::force_vjp`]. Every other effect's forces are held
+//! fixed by the adjoint ([`crate::Backbone::held_fixed_effects`] names them).
 
 use std::any::Any;
 use std::fmt::Debug;
@@ -59,6 +65,22 @@ pub struct SubstepContext<'a> {
     pub gripper_velocities: &'a [Vec3],
     /// Gripper closed flags for this step.
     pub closed: &'a [bool],
+}
+
+/// What an effect's adjoint sees ([`Effect::force_vjp`]): the state at the start of the substep
+/// whose forces are being differentiated.
+#[derive(Debug, Clone, Copy)]
+pub struct AdjointContext<'a> {
+    /// Substep length, s.
+    pub dt: f32,
+    /// Positions at the substep's start, m.
+    pub x: &'a [Vec3A],
+    /// Velocities at the substep's start, m/s.
+    pub v: &'a [Vec3A],
+    /// Mass per particle, kg.
+    pub masses: &'a [f32],
+    /// Gravity, m/s².
+    pub gravity: Vec3,
 }
 
 /// One particle in ground contact, given to [`Effect::ground_friction`].
@@ -151,6 +173,28 @@ pub trait Effect: Send + Sync + Debug {
     fn compliant_grasp(&self) -> bool {
         false
     }
+
+    /// Whether the step's adjoint is exact with this effect: true when it acts only in
+    /// [`Effect::setup`], or when its only other hook is [`Effect::add_forces`], whose forces
+    /// depend on nothing but the substep's positions and velocities (not on the per-spring
+    /// stiffness, gripper or per-rollout state) and whose Jacobian's transpose
+    /// [`Effect::force_vjp`] applies. False (the default): the adjoint holds its forces fixed.
+    fn adjoint_exact(&self) -> bool {
+        false
+    }
+
+    /// The transpose of [`Effect::add_forces`]' Jacobian: given `lambda` (∂L/∂f, one entry per
+    /// particle), add `λᵀ ∂f/∂x` to `grad_x` and `λᵀ ∂f/∂v` to `grad_v`, the forces taken at
+    /// the substep's start state in `ctx`. Used only when [`Effect::adjoint_exact`] is true.
+    fn force_vjp(
+        &self,
+        ctx: &AdjointContext<'_>,
+        lambda: &[Vec3A],
+        grad_x: &mut [Vec3A],
+        grad_v: &mut [Vec3A],
+    ) {
+        let _ = (ctx, lambda, grad_x, grad_v);
+    }
 }
 
 /// Linear air drag `f = -coefficient * v` on every particle (isotropic, still air).
@@ -192,6 +236,22 @@ impl Effect for AirDrag {
     ) {
         for (f, v) in force.iter_mut().zip(ctx.v) {
             *f -= self.coefficient * *v;
+        }
+    }
+
+    fn adjoint_exact(&self) -> bool {
+        true
+    }
+
+    fn force_vjp(
+        &self,
+        _ctx: &AdjointContext<'_>,
+        lambda: &[Vec3A],
+        _grad_x: &mut [Vec3A],
+        grad_v: &mut [Vec3A],
+    ) {
+        for (g, l) in grad_v.iter_mut().zip(lambda) {
+            *g -= self.coefficient * *l;
         }
     }
 }
@@ -256,5 +316,9 @@ impl Effect for StiffnessField {
             *k *= (0.5 * (a[i as usize] + a[j as usize])).exp();
         }
         Ok(())
+    }
+
+    fn adjoint_exact(&self) -> bool {
+        true // setup only
     }
 }

@@ -47,7 +47,9 @@ pub use actions::{ActionFrame, Actions, Rollout, State};
 pub use adjoint::{StepAdjoint, StepTape};
 pub use backbone::{Backbone, BackboneOptions};
 pub use config::{Dashpot, Manipulation, SimConfig, Substep};
-pub use effects::{AirDrag, Effect, GroundContact, ModelSetup, StiffnessField, SubstepContext};
+pub use effects::{
+    AdjointContext, AirDrag, Effect, GroundContact, ModelSetup, StiffnessField, SubstepContext,
+};
 pub use error::SimError;
 pub use fill::fill_interior;
 pub use obstacles::{BoxObstacle, Obstacles};

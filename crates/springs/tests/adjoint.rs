@@ -302,3 +302,57 @@ fn the_stiffness_gradient_matches_finite_differences() {
         );
     }
 }
+
+/// Linear drag, but without a transpose: the adjoint holds its forces fixed.
+#[derive(Debug)]
+struct OpaqueDrag(f32);
+
+impl springs::Effect for OpaqueDrag {
+    fn name(&self) -> &str {
+        "opaque-drag"
+    }
+    fn add_forces(
+        &self,
+        ctx: &springs::SubstepContext<'_>,
+        _state: &mut dyn std::any::Any,
+        _rest: &[f32],
+        force: &mut [glam::Vec3A],
+    ) {
+        for (f, v) in force.iter_mut().zip(ctx.v) {
+            *f -= self.0 * *v;
+        }
+    }
+}
+
+fn with_effect(bb: &Backbone, x: &[Vec3], effect: Box<dyn springs::Effect>) -> Backbone {
+    let options = springs::BackboneOptions {
+        masses: None,
+        effects: vec![effect],
+    };
+    Backbone::with_options(x, bb.held(), *bb.params(), *bb.config(), options).unwrap()
+}
+
+#[test]
+fn the_adjoint_carries_an_effect_that_gives_its_transpose() {
+    for dashpot in [Dashpot::Implicit, Dashpot::Explicit] {
+        let (plain, state, actions) = hanging(dashpot, 2.0);
+        // Strong drag (time constant 0.2 s for 1 kg), so that leaving it out shows.
+        let bb = with_effect(
+            &plain,
+            &state.x,
+            Box::new(springs::AirDrag { coefficient: 5.0 }),
+        );
+        assert!(bb.held_fixed_effects().is_empty());
+        let m = mismatch(&bb, &state, &actions, 3, 4);
+        assert!(m < 1e-2, "{dashpot:?}: relative mismatch {m}");
+        // The same force through an effect without a transpose: held fixed, named, and the
+        // check above would fail on it.
+        let opaque = with_effect(&plain, &state.x, Box::new(OpaqueDrag(5.0)));
+        assert_eq!(opaque.held_fixed_effects(), vec!["opaque-drag"]);
+        let m = mismatch(&opaque, &state, &actions, 3, 4);
+        assert!(
+            m > 5e-2,
+            "{dashpot:?}: the held-fixed drag was not missed ({m})"
+        );
+    }
+}
