@@ -358,8 +358,9 @@ fn null_as_nan<'de, D: serde::Deserializer<'de>>(d: D) -> Result<f64, D::Error> 
 }
 
 /// The loss of one scene (mean squared position error over the first `steps` steps and the
-/// particles seen, m²) with the field `log_factor` added to `model`'s backbone, and, when `with_gradient`, its gradient
-/// with respect to every log factor. Errors when the rollout fails or is not finite.
+/// particles seen, m²) with the field `log_factor` added to `model`'s backbone, and, when
+/// `with_gradient`, its gradient with respect to every log factor. Errors when the rollout
+/// fails or is not finite.
 pub fn scene_gradient(
     scene: &Scene,
     params: &SpringParams,

@@ -94,7 +94,6 @@ pub struct StepAdjoint {
     /// The effects whose forces the adjoint differentiates ([`Effect::adjoint_exact`]).
     effects: Vec<Arc<dyn Effect>>,
     masses: Vec<f32>,
-    gravity: Vec3,
 }
 
 impl Backbone {
@@ -122,7 +121,6 @@ impl Backbone {
                 .cloned()
                 .collect(),
             masses: self.masses.clone(),
-            gravity: self.config.gravity,
         }
     }
 
@@ -326,7 +324,6 @@ impl StepAdjoint {
                     x: x0,
                     v: &tape.v_start[s * n..(s + 1) * n],
                     masses: &bb.masses,
-                    gravity: bb.gravity,
                 };
                 for e in &bb.effects {
                     e.force_vjp(&ctx, &lambda, &mut ax, &mut av);

@@ -79,8 +79,6 @@ pub struct AdjointContext<'a> {
     pub v: &'a [Vec3A],
     /// Mass per particle, kg.
     pub masses: &'a [f32],
-    /// Gravity, m/s².
-    pub gravity: Vec3,
 }
 
 /// One particle in ground contact, given to [`Effect::ground_friction`].
