@@ -84,7 +84,8 @@ pub struct DiagnoseArgs {
     /// When the verdict is an effect, also write this run directory with the model that has
     /// it: `backbone.json` with the refitted backbone parameters and the base effects plus
     /// the verdict's, at their refitted values (for `eval`, `train`, `render` and another
-    /// `diagnose`, which then starts from those effects as its base).
+    /// `diagnose`, which then starts from those effects as its base). A refined stiffness
+    /// field of the run (`refine`) is kept as it is: the diagnosis holds it fixed.
     #[arg(long)]
     pub write_run: Option<PathBuf>,
     /// Print only the verdict line.
@@ -229,20 +230,16 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
     let t0 = Instant::now();
     let data = Dataset::open(&args.data)?;
     let backbone = read_backbone(&args.run)?;
-    // The diagnosis refits the global parameters, which a refined field was fitted for.
-    anyhow::ensure!(
-        backbone.refined.is_none(),
-        "{} holds a refined stiffness field (`cargo xtask refine`); diagnose the run it was \
-         refined from",
-        args.run.display()
-    );
     let protocol: Protocol = args.protocol.into();
     let train = scenes(&data, Split::Train, protocol)?;
     let val = scenes(&data, Split::Val, protocol)?;
     if let Some(dir) = &args.write_run {
         check_write_run(dir, &args.run)?;
     }
-    let config = config_from(args, &backbone.effects)?;
+    let mut config = config_from(args, &backbone.effects)?;
+    // A refined stiffness field stays at its values in every model; the refits move the
+    // global stiffness it multiplies.
+    config.field = backbone.refined.as_ref().map(|r| r.log_factor.clone());
     let quiet = args.quiet;
     let d = gap::diagnose(&train, &val, &backbone.params, &config, &mut |line| {
         if !quiet {

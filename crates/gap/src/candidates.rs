@@ -295,6 +295,8 @@ pub struct CandidateFamily {
     candidate: Option<Candidate>,
     frame: MaterialFrame,
     parameters: Parameters,
+    /// A refined stiffness field held at its values (not refitted).
+    field: Option<std::sync::Arc<Vec<f32>>>,
 }
 
 impl CandidateFamily {
@@ -345,7 +347,17 @@ impl CandidateFamily {
             candidate,
             frame,
             parameters: Parameters::new(p)?,
+            field: None,
         })
+    }
+
+    /// The same family with every model's stiffness multiplied by a refined per-particle field
+    /// (`springs::StiffnessField`, log factors of the tracked particles, from
+    /// `fit::refine_stiffness`), held at its values: the refits move the global stiffness it
+    /// multiplies, not the field.
+    pub fn with_field(mut self, log_factor: Option<std::sync::Arc<Vec<f32>>>) -> Self {
+        self.field = log_factor;
+        self
     }
 
     /// The candidate (None: the control).
@@ -434,6 +446,11 @@ impl Family for CandidateFamily {
         }
         if let Some(c) = self.candidate {
             effects.push(c.effect(values.get(at..).unwrap_or(&[]), &self.frame));
+        }
+        if let Some(f) = &self.field {
+            effects.push(Box::new(springs::StiffnessField {
+                log_factor: f.clone(),
+            }));
         }
         (
             params,

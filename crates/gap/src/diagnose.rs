@@ -49,6 +49,11 @@ pub struct DiagnoseConfig {
     /// bench it removed most wrong verdicts that refit noise produced (docs/gap.md).
     #[serde(default)]
     pub rescore: usize,
+    /// A refined stiffness field (log factor per tracked particle, `fit::refine_stiffness`)
+    /// kept at its values in every model of the diagnosis; `None` (the default, and every
+    /// report written before it existed): no field.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub field: Option<Vec<f32>>,
 }
 
 impl Default for DiagnoseConfig {
@@ -66,6 +71,7 @@ impl Default for DiagnoseConfig {
             probe: true,
             signature_scenes: 4,
             rescore: 3,
+            field: None,
         }
     }
 }
@@ -403,6 +409,16 @@ pub fn diagnose(
         )));
     }
     let frame = material_frame(train)?;
+    if let Some(f) = &config.field
+        && (f.len() != train[0].tracked || !f.iter().all(|a| a.is_finite()))
+    {
+        return Err(GapError::Config(format!(
+            "the stiffness field needs {} finite log factors (one per tracked particle), got {}",
+            train[0].tracked,
+            f.len()
+        )));
+    }
+    let field = config.field.clone().map(std::sync::Arc::new);
     let fit_cfg = FitConfig {
         population: config.population,
         generations: config.generations,
@@ -414,7 +430,8 @@ pub fn diagnose(
     check_distinct(&config.base, None)?;
     let refit = |cand: Option<Candidate>| -> Result<Model, GapError> {
         let t = Instant::now();
-        let family = CandidateFamily::with_base(*base, &config.base, cand, frame.clone())?;
+        let family = CandidateFamily::with_base(*base, &config.base, cand, frame.clone())?
+            .with_field(field.clone());
         let out = fit::fit(train, &family, &fit_cfg, None, &mut |_| {})?;
         Ok(Model {
             family,
@@ -424,7 +441,8 @@ pub fn diagnose(
         })
     };
     // The fitted backbone as given.
-    let given = CandidateFamily::with_base(*base, &config.base, None, frame.clone())?;
+    let given = CandidateFamily::with_base(*base, &config.base, None, frame.clone())?
+        .with_field(field.clone());
     let given_real = given.x0();
     let given_preds: Vec<Option<Vec<Vec<Vec3>>>> = val
         .par_iter()

@@ -159,3 +159,41 @@ fn a_verdict_rule_outside_its_range_is_an_error() {
         );
     }
 }
+
+/// A refined stiffness field is held at its values in every model: the backbone as given and
+/// the control refit are those of the family with the field, computed here by hand; a field of
+/// the wrong length is an error.
+#[test]
+fn a_refined_field_is_kept_in_every_model() {
+    let (train, val) = (scenes(dataset::Split::Train), scenes(dataset::Split::Val));
+    let tracked = train[0].tracked;
+    // Stiffer towards one end of the tracked particles' order, up to e¹.
+    let field: Vec<f32> = (0..tracked).map(|i| i as f32 / tracked as f32).collect();
+    let cfg = DiagnoseConfig {
+        field: Some(field.clone()),
+        ..tiny(Vec::new())
+    };
+    let d = gap::diagnose(&train, &val, &backbone(), &cfg, &mut |_| {}).unwrap();
+    let frame = gap::material_frame(&train).unwrap();
+    let with_field = CandidateFamily::new(backbone(), None, frame.clone())
+        .unwrap()
+        .with_field(Some(std::sync::Arc::new(field)));
+    let given = mde_cm(&with_field, &with_field.x0(), &val);
+    assert_eq!(d.backbone_as_given.mde_cm.to_bits(), given.to_bits());
+    let plain = CandidateFamily::new(backbone(), None, frame).unwrap();
+    let without = mde_cm(&plain, &plain.x0(), &val);
+    assert!(
+        (given - without).abs() > 1e-3,
+        "the field changed nothing: {given} {without}"
+    );
+    let fitted: Vec<f64> = d.control.fitted.iter().map(|(_, v)| *v).collect();
+    assert_eq!(
+        d.control.heldout_mde_cm.to_bits(),
+        mde_cm(&with_field, &fitted, &val).to_bits()
+    );
+    let short = DiagnoseConfig {
+        field: Some(vec![0.0; tracked - 1]),
+        ..tiny(Vec::new())
+    };
+    assert!(gap::diagnose(&train, &val, &backbone(), &short, &mut |_| {}).is_err());
+}
