@@ -81,11 +81,14 @@ pub struct DiagnoseArgs {
     /// every library model).
     #[arg(long)]
     pub no_network: bool,
-    /// When the verdict is an effect, also write this run directory with the model that has
-    /// it: `backbone.json` with the refitted backbone parameters and the base effects plus
-    /// the verdict's, at their refitted values (for `eval`, `train`, `render` and another
-    /// `diagnose`, which then starts from those effects as its base). A refined stiffness
-    /// field of the run (`refine`) is kept as it is: the diagnosis holds it fixed.
+    /// Also write this run directory with the model the diagnosis refitted: when the verdict
+    /// is an effect, the model that has it, i.e. `backbone.json` with the refitted backbone
+    /// parameters and the base effects plus the verdict's, at their refitted values (for
+    /// `eval`, `train`, `render` and another `diagnose`, which then starts from those effects
+    /// as its base). With the verdict `none`
+    /// or `unknown` it holds the control refit instead (the run's own effects refitted, none
+    /// added; the command prints its held-out MDE beside the model as given). A refined
+    /// stiffness field of the run (`refine`) is kept as it is: the diagnosis holds it fixed.
     #[arg(long)]
     pub write_run: Option<PathBuf>,
     /// Print only the verdict line.
@@ -299,10 +302,22 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
             );
         }
     } else if let Some(dir) = &args.write_run {
+        // No effect to add; the control refit (the same model refitted on the train split) may
+        // still differ from the model as given, for better or worse: written, with both scores.
+        let (params, effects) = d.refitted_model(&backbone.params, None)?;
+        let mut file = backbone.clone();
+        file.params = params;
+        file.effects = effects;
+        file.protocol = protocol.name().to_string();
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+        write_json(&backbone_path(dir), &file)?;
         println!(
-            "verdict {}: no effect to add, {} not written",
+            "verdict {}: no effect to add; wrote the control refit to {} ({}; held-out MDE {:.3} cm, as given {:.3} cm)",
             d.verdict,
-            dir.display()
+            backbone_path(dir).display(),
+            file.label(),
+            d.control.heldout_mde_cm,
+            d.backbone_as_given.mde_cm
         );
     }
     Ok(d)
