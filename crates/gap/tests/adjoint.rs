@@ -128,12 +128,10 @@ fn mismatch(bb: &Backbone, state: &State, actions: &Actions) -> f64 {
     worst
 }
 
-#[test]
-fn every_transposed_effect_matches_finite_differences() {
-    let (x, _) = rope();
-    let material: Arc<Vec<f32>> = Arc::new(x.iter().map(|p| 10.0 * p.x - 1.0).collect());
-    let effects: Vec<Box<dyn Effect>> = vec![
-        // Strong enough that leaving any of them out fails the check (see below).
+/// The transposed effects whose forces depend on the state, strong enough that leaving any of
+/// their transposes out fails the check (`leaving_a_transpose_out_fails_the_check`).
+fn state_dependent() -> Vec<Box<dyn Effect>> {
+    vec![
         Box::new(QuadraticDrag { coefficient: 8.0 }),
         Box::new(BendingSprings::new(0.8)),
         Box::new(ExternalField {
@@ -142,6 +140,15 @@ fn every_transposed_effect_matches_finite_differences() {
             centre: Vec3::new(0.1, 0.02, 0.28),
             width: 0.15,
         }),
+    ]
+}
+
+#[test]
+fn every_transposed_effect_matches_finite_differences() {
+    let (x, _) = rope();
+    let material: Arc<Vec<f32>> = Arc::new(x.iter().map(|p| 10.0 * p.x - 1.0).collect());
+    let mut effects = state_dependent();
+    effects.extend::<[Box<dyn Effect>; 3]>([
         Box::new(GravityScale { factor: 2.0 }),
         Box::new(StiffnessGradient {
             slope: 1.5,
@@ -151,7 +158,7 @@ fn every_transposed_effect_matches_finite_differences() {
             slope: 1.0,
             material,
         }),
-    ];
+    ]);
     for effect in effects {
         let name = effect.name().to_owned();
         let (bb, state, actions) = backbone(effect);
@@ -186,17 +193,7 @@ impl Effect for Untransposed {
 
 #[test]
 fn leaving_a_transpose_out_fails_the_check() {
-    let cases: Vec<Box<dyn Effect>> = vec![
-        Box::new(QuadraticDrag { coefficient: 8.0 }),
-        Box::new(BendingSprings::new(0.8)),
-        Box::new(ExternalField {
-            uniform: Vec3::new(20.0, 0.0, -30.0),
-            gradient: -300.0,
-            centre: Vec3::new(0.1, 0.02, 0.28),
-            width: 0.15,
-        }),
-    ];
-    for effect in cases {
+    for effect in state_dependent() {
         let name = effect.name().to_owned();
         let (bb, state, actions) = backbone(Box::new(Untransposed(effect)));
         assert_eq!(bb.held_fixed_effects(), vec!["untransposed"]);
