@@ -18,7 +18,7 @@
 //!
 //! The field can sit on a backbone that carries effects (a diagnosis's refitted drag, bending,
 //! ...): `model` builds those options and the field is added to them. Every effect must be one
-//! whose forces the adjoint differentiates ([`springs::Effect::adjoint_exact`]); a refinement
+//! the adjoint differentiates (not [`springs::EffectAdjoint::HeldFixed`]); a refinement
 //! through a model whose adjoint holds some effect fixed is refused.
 
 use std::path::Path;

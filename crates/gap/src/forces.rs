@@ -7,8 +7,8 @@ use std::sync::Arc;
 
 use glam::{Vec3, Vec3A};
 use springs::{
-    AdjointContext, Backbone, Effect, GROUND_VISCOUS_FRICTION, GroundContact, ModelSetup, SimError,
-    SubstepContext,
+    AdjointContext, Backbone, Effect, EffectAdjoint, GROUND_VISCOUS_FRICTION, GroundContact,
+    ModelSetup, SimError, SubstepContext,
 };
 
 fn bad(name: &str, message: String) -> SimError {
@@ -77,8 +77,8 @@ impl Effect for QuadraticDrag {
             }
         }
     }
-    fn adjoint_exact(&self) -> bool {
-        true
+    fn adjoint(&self) -> EffectAdjoint {
+        EffectAdjoint::Transposed
     }
     fn force_vjp(
         &self,
@@ -130,8 +130,8 @@ impl Effect for StiffnessGradient {
         }
         Ok(())
     }
-    fn adjoint_exact(&self) -> bool {
-        true // setup only
+    fn adjoint(&self) -> EffectAdjoint {
+        EffectAdjoint::SetupOnly
     }
 }
 
@@ -159,8 +159,8 @@ impl Effect for MassGradient {
         }
         Ok(())
     }
-    fn adjoint_exact(&self) -> bool {
-        true // setup only
+    fn adjoint(&self) -> EffectAdjoint {
+        EffectAdjoint::SetupOnly
     }
 }
 
@@ -311,8 +311,8 @@ impl Effect for BendingSprings {
             }
         }
     }
-    fn adjoint_exact(&self) -> bool {
-        true
+    fn adjoint(&self) -> EffectAdjoint {
+        EffectAdjoint::Transposed
     }
     fn force_vjp(
         &self,
@@ -688,8 +688,8 @@ impl Effect for ExternalField {
             *f += (a0 + r * self.gradient) * (window * *m);
         }
     }
-    fn adjoint_exact(&self) -> bool {
-        true
+    fn adjoint(&self) -> EffectAdjoint {
+        EffectAdjoint::Transposed
     }
     fn force_vjp(
         &self,
@@ -747,7 +747,7 @@ impl Effect for GravityScale {
             *f += extra * *m;
         }
     }
-    fn adjoint_exact(&self) -> bool {
-        true // a constant force: nothing to carry back
+    fn adjoint(&self) -> EffectAdjoint {
+        EffectAdjoint::Transposed // a constant force: its transpose is zero
     }
 }

@@ -8,8 +8,8 @@
 //! exact transpose of the step's linearisation in the elastic forces, the implicit (or
 //! explicit) dashpots (directions included), gravity, the ground's penalty force, normal
 //! damping and friction, the kinematic grasp and the final clamp, and the forces of every
-//! effect that gives its own transpose ([`crate::Effect::adjoint_exact`]: drag, bending springs,
-//! fields, and every effect that acts only at construction). Held fixed (their derivatives
+//! effect that gives its own transpose ([`crate::EffectAdjoint::Transposed`]: drag, bending
+//! springs, fields), besides every effect that acts only at construction. Held fixed (their derivatives
 //! are left out): the other effects' forces ([`Backbone::held_fixed_effects`]; a friction
 //! effect's law is taken as its recorded speed ratio), pushing, obstacles and a compliant grasp;
 //! with `SimConfig::partitions > 1` the sweeps are transposed in the unsplit order. A contact
@@ -21,7 +21,7 @@ use std::sync::Arc;
 use glam::{Vec3, Vec3A};
 
 use crate::params::GROUND_STIFFNESS;
-use crate::{AdjointContext, Backbone, Effect, SimError};
+use crate::{AdjointContext, Backbone, Effect, EffectAdjoint, SimError};
 
 /// What one [`Backbone::step_taped`] recorded for [`StepAdjoint::vjp`]. Reusable: each taped step
 /// overwrites it.
@@ -91,7 +91,7 @@ pub struct StepAdjoint {
     explicit_damping: bool,
     has_damping: bool,
     friction_effect: bool,
-    /// The effects whose forces the adjoint differentiates ([`Effect::adjoint_exact`]).
+    /// The effects whose forces the adjoint differentiates ([`EffectAdjoint::Transposed`]).
     effects: Vec<Arc<dyn Effect>>,
     masses: Vec<f32>,
 }
@@ -117,7 +117,7 @@ impl Backbone {
             effects: self
                 .effects
                 .iter()
-                .filter(|e| e.adjoint_exact())
+                .filter(|e| e.adjoint() == EffectAdjoint::Transposed)
                 .cloned()
                 .collect(),
             masses: self.masses.clone(),
@@ -125,12 +125,12 @@ impl Backbone {
     }
 
     /// Names of the effects whose forces [`StepAdjoint`] holds fixed (their
-    /// [`Effect::adjoint_exact`] is false): with none, the adjoint is the exact transpose of the
+    /// [`Effect::adjoint`] is [`EffectAdjoint::HeldFixed`]): with none, the adjoint is the exact transpose of the
     /// step's linearisation (up to contacts that switch within it).
     pub fn held_fixed_effects(&self) -> Vec<&str> {
         self.effects
             .iter()
-            .filter(|e| !e.adjoint_exact())
+            .filter(|e| e.adjoint() == EffectAdjoint::HeldFixed)
             .map(|e| e.name())
             .collect()
     }

@@ -52,6 +52,9 @@ pub struct Backbone {
     pub(crate) explicit_damping: bool,
     /// Shared so that [`crate::StepAdjoint`] can hold them too.
     pub(crate) effects: Vec<std::sync::Arc<dyn Effect>>,
+    /// Some effect gives its forces' transpose, which needs each substep's start velocities
+    /// on the tape.
+    pub(crate) transposed_effects: bool,
     pub(crate) friction_effect: Option<usize>,
     pub(crate) compliant_grasp: bool,
     /// Slabs for a split rollout (`config.partitions > 1`).
@@ -170,6 +173,9 @@ impl Backbone {
             .collect();
         let friction_effect = effects.iter().position(|e| e.replaces_ground_friction());
         let compliant_grasp = effects.iter().any(|e| e.compliant_grasp());
+        let transposed_effects = effects
+            .iter()
+            .any(|e| e.adjoint() == crate::EffectAdjoint::Transposed);
         let inv_mass = masses.iter().map(|m| 1.0 / m).collect();
         let mut bb = Self {
             rest_positions: rest_positions.to_vec(),
@@ -193,6 +199,7 @@ impl Backbone {
             has_damping: false,
             explicit_damping: false,
             effects: effects.into_iter().map(std::sync::Arc::from).collect(),
+            transposed_effects,
             friction_effect,
             compliant_grasp,
             partition,

@@ -12,10 +12,10 @@
 //! [`crate::Scratch`] owns. With no effects none of this code runs.
 //!
 //! The step's adjoint ([`crate::StepAdjoint`]) differentiates an effect when it says so
-//! ([`Effect::adjoint_exact`]): an effect that acts only in `setup` needs nothing more (its
-//! changes are in the backbone's arrays, which the adjoint reads); one with forces gives the
-//! transpose of their Jacobian in [`Effect::force_vjp`]. Every other effect's forces are held
-//! fixed by the adjoint ([`crate::Backbone::held_fixed_effects`] names them).
+//! ([`Effect::adjoint`]): an effect that acts only in `setup` needs nothing more (its changes
+//! are in the backbone's arrays, which the adjoint reads); one with forces gives the transpose
+//! of their Jacobian in [`Effect::force_vjp`]. Every other effect's forces are held fixed by
+//! the adjoint ([`crate::Backbone::held_fixed_effects`] names them).
 
 use std::any::Any;
 use std::fmt::Debug;
@@ -79,6 +79,20 @@ pub struct AdjointContext<'a> {
     pub v: &'a [Vec3A],
     /// Mass per particle, kg.
     pub masses: &'a [f32],
+}
+
+/// How the step's adjoint ([`crate::StepAdjoint`]) treats an effect ([`Effect::adjoint`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum EffectAdjoint {
+    /// Its forces are held fixed: the adjoint is not exact with it.
+    HeldFixed,
+    /// It acts only in [`Effect::setup`]; its changes are in the backbone's arrays, which the
+    /// adjoint reads: exact, nothing to carry.
+    SetupOnly,
+    /// Its only other hook is [`Effect::add_forces`], whose forces depend on nothing but the
+    /// substep's positions and velocities (not on the per-spring stiffness, the grippers or
+    /// per-rollout state), and [`Effect::force_vjp`] applies the transpose of their Jacobian.
+    Transposed,
 }
 
 /// One particle in ground contact, given to [`Effect::ground_friction`].
@@ -172,18 +186,14 @@ pub trait Effect: Send + Sync + Debug {
         false
     }
 
-    /// Whether the step's adjoint is exact with this effect: true when it acts only in
-    /// [`Effect::setup`], or when its only other hook is [`Effect::add_forces`], whose forces
-    /// depend on nothing but the substep's positions and velocities (not on the per-spring
-    /// stiffness, gripper or per-rollout state) and whose Jacobian's transpose
-    /// [`Effect::force_vjp`] applies. False (the default): the adjoint holds its forces fixed.
-    fn adjoint_exact(&self) -> bool {
-        false
+    /// How the step's adjoint treats this effect ([`EffectAdjoint`]; default: held fixed).
+    fn adjoint(&self) -> EffectAdjoint {
+        EffectAdjoint::HeldFixed
     }
 
     /// The transpose of [`Effect::add_forces`]' Jacobian: given `lambda` (∂L/∂f, one entry per
     /// particle), add `λᵀ ∂f/∂x` to `grad_x` and `λᵀ ∂f/∂v` to `grad_v`, the forces taken at
-    /// the substep's start state in `ctx`. Used only when [`Effect::adjoint_exact`] is true.
+    /// the substep's start state in `ctx`. Called only for [`EffectAdjoint::Transposed`].
     fn force_vjp(
         &self,
         ctx: &AdjointContext<'_>,
@@ -237,8 +247,8 @@ impl Effect for AirDrag {
         }
     }
 
-    fn adjoint_exact(&self) -> bool {
-        true
+    fn adjoint(&self) -> EffectAdjoint {
+        EffectAdjoint::Transposed
     }
 
     fn force_vjp(
@@ -316,7 +326,7 @@ impl Effect for StiffnessField {
         Ok(())
     }
 
-    fn adjoint_exact(&self) -> bool {
-        true // setup only
+    fn adjoint(&self) -> EffectAdjoint {
+        EffectAdjoint::SetupOnly
     }
 }

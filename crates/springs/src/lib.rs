@@ -48,7 +48,8 @@ pub use adjoint::{StepAdjoint, StepTape};
 pub use backbone::{Backbone, BackboneOptions};
 pub use config::{Dashpot, Manipulation, SimConfig, Substep};
 pub use effects::{
-    AdjointContext, AirDrag, Effect, GroundContact, ModelSetup, StiffnessField, SubstepContext,
+    AdjointContext, AirDrag, Effect, EffectAdjoint, GroundContact, ModelSetup, StiffnessField,
+    SubstepContext,
 };
 pub use error::SimError;
 pub use fill::fill_interior;

@@ -343,7 +343,7 @@ impl Backbone {
             if let Some(t) = tape.as_deref_mut() {
                 t.x.extend_from_slice(&sc.x[..n]);
                 t.tangential.resize(t.tangential.len() + n, 1.0);
-                if self.explicit_damping || !self.effects.is_empty() {
+                if self.explicit_damping || self.transposed_effects {
                     t.v_start.extend_from_slice(&sc.v[..n]);
                 }
             }
