@@ -180,6 +180,9 @@ impl Effect for Untransposed {
     fn setup(&mut self, model: &mut springs::ModelSetup<'_>) -> Result<(), springs::SimError> {
         self.0.setup(model)
     }
+    fn stability(&self, backbone: &Backbone, row: &mut [f32], damping: &mut [f32]) {
+        self.0.stability(backbone, row, damping);
+    }
     fn add_forces(
         &self,
         ctx: &springs::SubstepContext<'_>,
