@@ -45,6 +45,7 @@ mod diagnose;
 pub mod forces;
 mod html;
 mod judge;
+mod lanes;
 mod learnable;
 mod locate;
 mod nan;
