@@ -856,7 +856,7 @@ mod tests {
             BackboneOptions::default(),
         )
         .unwrap();
-        assert!(bb.springs().len() % 4 != 0 && bb.springs().len() > 40);
+        assert!(!bb.springs().len().is_multiple_of(4) && bb.springs().len() > 40);
         let xa: Vec<Vec3A> = x.iter().map(|p| Vec3A::from(*p)).collect();
         let rest = bb
             .springs()
