@@ -453,9 +453,16 @@ impl Effect for PlasticCreep {
             let (_, l) = lanes::geometry(ctx.x, ab);
             let rest4 = Vec4::from_slice(l0);
             let strain = (l - rest4) / rest4;
-            for (j, l0) in l0.iter_mut().enumerate() {
-                self.creep(ctx.dt, l[j], strain[j], l0);
-            }
+            // [`Self::creep`] in lanes, both outcomes then a select (no branch per spring).
+            let sign = strain.signum();
+            let excess = strain.abs() - self.yield_strain;
+            let target = l / (Vec4::ONE + self.yield_strain * sign);
+            let step = Vec4::splat(self.rate * ctx.dt) * excess * rest4;
+            // `f32::min` keeps `step` when the other side is NaN; `_mm_min_ps(a, b)` returns
+            // `b` then, hence the operand order.
+            let step = (target - rest4).abs().min(step);
+            let creeps = excess.cmpgt(Vec4::ZERO) & rest4.cmpgt(Vec4::ZERO);
+            Vec4::select(creeps, rest4 + step * sign, rest4).write_to_slice(l0);
         }
         for ([a, b], l0) in springs[blocks..].iter().zip(rest[blocks..].iter_mut()) {
             let l = ctx.x[*a as usize].distance(ctx.x[*b as usize]);
