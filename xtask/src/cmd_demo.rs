@@ -87,6 +87,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
             samples: 8,
             seed: 0,
             rescore: 0,
+            rescore_scenes: 0,
             protocol: ProtocolArg::Paper,
             bounds: BoundsArg::Reference,
             quiet: true,

@@ -51,6 +51,11 @@ pub struct DiagnoseArgs {
     /// is kept (0: the best candidate by its own generation's sampled episodes).
     #[arg(long, default_value_t = 3)]
     pub rescore: usize,
+    /// Most training episodes that rescoring scores: a subset of this many, drawn with the
+    /// seed, when there are more (0: all; the default 64 keeps a default-size dataset's
+    /// diagnosis within ten minutes on 2 cores, `docs/gap.md`).
+    #[arg(long, default_value_t = 64)]
+    pub rescore_scenes: usize,
     /// Window of each episode.
     #[arg(long, value_enum, default_value_t = ProtocolArg::Paper)]
     pub protocol: ProtocolArg,
@@ -129,6 +134,7 @@ fn config_from(args: &DiagnoseArgs, run_effects: &[BaseEffect]) -> anyhow::Resul
         seed: args.seed,
         resamples: args.resamples,
         rescore: args.rescore,
+        rescore_scenes: args.rescore_scenes,
         candidates,
         base: match &args.with {
             Some(list) => BaseEffect::parse_list(list)?,

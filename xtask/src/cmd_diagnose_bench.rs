@@ -158,6 +158,10 @@ pub struct DiagnoseBenchArgs {
     /// is kept (0: the best candidate by its own generation's sampled episodes).
     #[arg(long, default_value_t = 3)]
     pub rescore: usize,
+    /// Most training episodes that rescoring scores (a seeded subset when there are more;
+    /// 0: all).
+    #[arg(long, default_value_t = 64)]
+    pub rescore_scenes: usize,
     /// Most base effects per object (0: diagnose against the bare backbone).
     #[arg(long, default_value_t = 2)]
     pub max_base: usize,
@@ -403,6 +407,7 @@ fn fit_backbone(
         sigma0: 0.2,
         seed: args.seed,
         rescore: args.rescore,
+        rescore_scenes: args.rescore_scenes,
     };
     let out = fit::fit(train, &family, &cfg, None, &mut |_| {})?;
     Ok((BackboneFamily::params(&out.best), out, cfg))
@@ -420,6 +425,7 @@ fn diagnose(
         samples: args.samples,
         seed: args.seed,
         rescore: args.rescore,
+        rescore_scenes: args.rescore_scenes,
         base: base.to_vec(),
         rule: gap::VerdictRule {
             min_shrinkage: args.min_shrinkage,
@@ -443,6 +449,7 @@ fn control_only(
         samples: args.samples,
         seed: args.seed,
         rescore: args.rescore,
+        rescore_scenes: args.rescore_scenes,
         base: base.to_vec(),
         candidates: Vec::new(),
         probe: false,

@@ -37,6 +37,10 @@ pub struct FitArgs {
     /// by its own generation's sampled episodes, the reference's rule).
     #[arg(long, default_value_t = 0)]
     pub rescore: usize,
+    /// Most training episodes the rescoring scores: a subset of this many, drawn with the
+    /// seed, when there are more (0: all).
+    #[arg(long, default_value_t = 0)]
+    pub rescore_scenes: usize,
     /// Window of each training episode.
     #[arg(long, value_enum, default_value_t = ProtocolArg::Paper)]
     pub protocol: ProtocolArg,
@@ -90,6 +94,7 @@ pub fn run(args: &FitArgs) -> anyhow::Result<BackboneFile> {
         sigma0: 0.2,
         seed: args.seed,
         rescore: args.rescore,
+        rescore_scenes: args.rescore_scenes,
     };
     anyhow::ensure!(
         config.population >= 2 && config.samples >= 1,
@@ -118,8 +123,9 @@ pub fn run(args: &FitArgs) -> anyhow::Result<BackboneFile> {
     if let Some(r) = &outcome.rescored {
         let kept = &r.contenders[r.chosen];
         println!(
-            "rescored {} contenders on all {} train episodes: kept {} (loss {:.3e} m²)",
+            "rescored {} contenders on {} of {} train episodes: kept {} (loss {:.3e} m²)",
             r.contenders.len(),
+            r.scenes,
             scenes.len(),
             kept.generation
                 .map_or("the optimiser's mean".to_string(), |g| format!(

@@ -31,10 +31,16 @@ pub struct FitConfig {
     /// Final selection. `0` (the reference's rule): the best candidate by the loss on its own
     /// generation's sampled scenes, which favours whichever generation drew easy scenes.
     /// `k > 0`: after the last generation the optimiser's mean and the best candidates of the
-    /// `k` generations with the lowest sampled loss are scored on *all* scenes, and the best of
-    /// those by that loss is kept (`k + 1` extra evaluations over every scene).
+    /// `k` generations with the lowest sampled loss are scored on *all* scenes (or
+    /// [`rescore_scenes`](Self::rescore_scenes) of them), and the best of those by that loss is
+    /// kept (`k + 1` extra evaluations over every scored scene).
     #[serde(default)]
     pub rescore: usize,
+    /// Most scenes the final rescoring scores (0: all). With more scenes than this, a subset
+    /// of this many drawn with the seed, the same for every contender, so that the rescoring
+    /// of a large dataset costs at most `(rescore + 1) × rescore_scenes` rollouts.
+    #[serde(default)]
+    pub rescore_scenes: usize,
 }
 
 impl Default for FitConfig {
@@ -46,6 +52,7 @@ impl Default for FitConfig {
             sigma0: 0.2,
             seed: 0,
             rescore: 0,
+            rescore_scenes: 0,
         }
     }
 }
@@ -76,8 +83,8 @@ pub struct FitOutcome {
     pub names: Vec<String>,
     /// Best parameters seen (real units, integers rounded).
     pub best: Vec<f64>,
-    /// Their loss, m²: on the scenes of the generation they were found in, or on all scenes
-    /// when [`FitConfig::rescore`] is set.
+    /// Their loss, m²: on the scenes of the generation they were found in, or on the
+    /// rescored scenes when [`FitConfig::rescore`] is set.
     pub best_loss: f64,
     /// Per-generation history.
     pub history: Vec<Generation>,
@@ -88,18 +95,22 @@ pub struct FitOutcome {
     /// Best candidate of every generation (real units), in order; used by the rescoring.
     #[serde(default)]
     pub generation_best: Vec<Vec<f64>>,
-    /// The final rescoring on all scenes, when [`FitConfig::rescore`] asked for one.
+    /// The final rescoring, when [`FitConfig::rescore`] asked for one.
     #[serde(default)]
     pub rescored: Option<Rescore>,
 }
 
-/// What the final rescoring on all scenes found (see [`FitConfig::rescore`]).
+/// What the final rescoring found (see [`FitConfig::rescore`]).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Rescore {
     /// Contenders scored, in order: the optimiser's final mean, then generation bests.
     pub contenders: Vec<Contender>,
     /// Index into `contenders` of the one kept.
     pub chosen: usize,
+    /// Scenes each contender was scored on ([`FitConfig::rescore_scenes`]); 0 in outcomes
+    /// written before the cap existed, which scored all scenes.
+    #[serde(default)]
+    pub scenes: usize,
 }
 
 /// One contender of the final rescoring.
@@ -107,7 +118,7 @@ pub struct Rescore {
 pub struct Contender {
     /// Generation whose best candidate this is; `None` for the optimiser's final mean.
     pub generation: Option<usize>,
-    /// Mean loss over all scenes, m².
+    /// Mean loss over the rescored scenes, m².
     pub loss: f64,
 }
 
@@ -205,6 +216,7 @@ pub fn fit<F: Family>(
             let same = FitConfig {
                 generations: config.generations,
                 rescore: config.rescore,
+                rescore_scenes: config.rescore_scenes,
                 ..ck.config.clone()
             };
             if ck.family != family.name() || same != *config || ck.scenes != scenes.len() {
@@ -278,7 +290,7 @@ pub fn fit<F: Family>(
         on_generation(&generation);
     }
     if config.rescore > 0 && outcome.rescored.is_none() {
-        rescore(scenes, family, params, &es, config.rescore, &mut outcome)?;
+        rescore(scenes, family, params, &es, config, &mut outcome)?;
     }
     Ok(outcome)
 }
@@ -299,16 +311,18 @@ fn losses_on<F: Family>(
         .collect()
 }
 
-/// Scores the optimiser's mean and the best candidates of the `k` best generations on every
-/// scene and keeps the best (ties: the earlier contender, so the mean wins an exact tie).
+/// Scores the optimiser's mean and the best candidates of the `config.rescore` best
+/// generations on every scene (or a seeded subset of `config.rescore_scenes`) and keeps the
+/// best (ties: the earlier contender, so the mean wins an exact tie).
 fn rescore<F: Family>(
     scenes: &[Scene],
     family: &F,
     params: &cmaes::Parameters,
     es: &CmaEs,
-    k: usize,
+    config: &FitConfig,
     outcome: &mut FitOutcome,
 ) -> Result<(), FitError> {
+    let k = config.rescore;
     let mut order: Vec<usize> = (0..outcome.history.len().min(outcome.generation_best.len()))
         .filter(|&g| outcome.history[g].best_loss < PENALTY)
         .collect();
@@ -325,14 +339,14 @@ fn rescore<F: Family>(
         reals.push(outcome.generation_best[g].clone());
         labels.push(Some(g));
     }
-    let all: Vec<usize> = (0..scenes.len()).collect();
-    let losses = losses_on(family, &reals, scenes, &all);
+    let scored = rescored_scenes(scenes.len(), config);
+    let losses = losses_on(family, &reals, scenes, &scored);
     let contenders: Vec<Contender> = losses
-        .chunks(scenes.len())
+        .chunks(scored.len())
         .zip(labels)
         .map(|(l, generation)| Contender {
             generation,
-            loss: l.iter().sum::<f64>() / scenes.len() as f64,
+            loss: l.iter().sum::<f64>() / scored.len() as f64,
         })
         .collect();
     let chosen =
@@ -343,6 +357,22 @@ fn rescore<F: Family>(
     outcome.evaluations += contenders.len() as u64;
     outcome.best = reals[chosen].clone();
     outcome.best_loss = contenders[chosen].loss;
-    outcome.rescored = Some(Rescore { contenders, chosen });
+    outcome.rescored = Some(Rescore {
+        contenders,
+        chosen,
+        scenes: scored.len(),
+    });
     Ok(())
+}
+
+/// The scenes the final rescoring scores, in increasing order: all of them, or a subset of
+/// `rescore_scenes` drawn from a stream of its own (the generations' draws stay as they were).
+fn rescored_scenes(n: usize, config: &FitConfig) -> Vec<usize> {
+    if config.rescore_scenes == 0 || config.rescore_scenes >= n {
+        return (0..n).collect();
+    }
+    let mut rng = ChaCha8Rng::seed_from_u64(config.seed ^ 0x5245_5343_4f52_4553); // "RESCORES"
+    let mut picked = sample(&mut rng, n, config.rescore_scenes).into_vec();
+    picked.sort_unstable();
+    picked
 }

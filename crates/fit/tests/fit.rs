@@ -72,6 +72,7 @@ fn fit_reduces_loss_towards_the_truth() {
         sigma0: 0.2,
         seed: 3,
         rescore: 0,
+        rescore_scenes: 0,
     };
     let mut seen = 0;
     let out = fit(&scenes, &family, &config, None, &mut |_| seen += 1).unwrap();
@@ -97,6 +98,7 @@ fn resumed_fit_equals_uninterrupted() {
         sigma0: 0.2,
         seed: 11,
         rescore: 2,
+        rescore_scenes: 0,
     };
     let whole = fit(&scenes, &family, &config, None, &mut |_| {}).unwrap();
 
@@ -140,6 +142,7 @@ fn rescoring_keeps_the_best_contender_on_all_scenes() {
         sigma0: 0.2,
         seed: 5,
         rescore: 0,
+        rescore_scenes: 0,
     };
     let mut plain = fit(&scenes, &family, &config, None, &mut |_| {}).unwrap();
     assert!(plain.rescored.is_none());
@@ -165,4 +168,62 @@ fn rescoring_keeps_the_best_contender_on_all_scenes() {
     // full training loss.
     assert!(full(&rescored.best) <= full(&plain.best));
     assert_eq!(rescored.evaluations, plain.evaluations + 4);
+}
+
+#[test]
+fn capped_rescoring_scores_every_contender_on_one_seeded_subset() {
+    let (_, scenes) = synthetic_scenes(&truth(), 4);
+    let family = BackboneFamily::new(springs::REFERENCE_BOUNDS).unwrap();
+    let mut config = FitConfig {
+        population: 6,
+        generations: 6,
+        samples: 1,
+        sigma0: 0.2,
+        seed: 5,
+        rescore: 3,
+        rescore_scenes: 0,
+    };
+    let mut all = fit(&scenes, &family, &config, None, &mut |_| {}).unwrap();
+    assert_eq!(all.rescored.as_ref().unwrap().scenes, 4);
+    // A cap at or above the scene count changes nothing.
+    config.rescore_scenes = 4;
+    let mut same = fit(&scenes, &family, &config, None, &mut |_| {}).unwrap();
+    config.rescore_scenes = 2;
+    let mut capped = fit(&scenes, &family, &config, None, &mut |_| {}).unwrap();
+    for g in [&mut all, &mut same, &mut capped]
+        .into_iter()
+        .flat_map(|o| o.history.iter_mut())
+    {
+        g.wall_s = 0.0;
+    }
+    assert_eq!(same, all);
+    assert_eq!(
+        capped.history, all.history,
+        "the cap touches only the final choice"
+    );
+    let r = capped.rescored.as_ref().unwrap();
+    assert_eq!(r.scenes, 2);
+    // Every generation-best contender's loss is its mean over one and the same pair of
+    // scenes, and so is the kept parameters'.
+    let loss = |real: &[f64], pair: [usize; 2]| {
+        pair.iter()
+            .map(|&i| scene_loss(&family, real, &scenes[i]))
+            .sum::<f64>()
+            / 2.0
+    };
+    let pairs: Vec<[usize; 2]> = (0..4)
+        .flat_map(|a| (a + 1..4).map(move |b| [a, b]))
+        .filter(|&pair| {
+            r.contenders.iter().all(|c| match c.generation {
+                Some(g) => loss(&capped.generation_best[g], pair) == c.loss,
+                None => true,
+            }) && loss(&capped.best, pair) == capped.best_loss
+        })
+        .collect();
+    assert_eq!(pairs.len(), 1, "{pairs:?}");
+    assert!(
+        r.contenders
+            .iter()
+            .all(|c| c.loss >= r.contenders[r.chosen].loss)
+    );
 }

@@ -49,6 +49,14 @@ pub struct DiagnoseConfig {
     /// bench it removed most wrong verdicts that refit noise produced (docs/gap.md).
     #[serde(default)]
     pub rescore: usize,
+    /// Most training scenes the final rescoring scores ([`fit::FitConfig::rescore_scenes`];
+    /// 0: all, as in reports written before the cap existed, hence the serde default).
+    /// Default 64: eight times the scenes a generation samples. Datasets of up to 64 training
+    /// episodes (the bench's, DEFORM's 56) are rescored on all of them as before; a
+    /// default-size generated dataset (100) on 64, which keeps its diagnosis within ten
+    /// minutes on 2 cores (docs/gap.md).
+    #[serde(default)]
+    pub rescore_scenes: usize,
     /// A refined stiffness field (log factor per tracked particle, `fit::refine_stiffness`)
     /// kept at its values in every model of the diagnosis; `None` (the default, and every
     /// report written before it existed): no field.
@@ -71,6 +79,7 @@ impl Default for DiagnoseConfig {
             probe: true,
             signature_scenes: 4,
             rescore: 3,
+            rescore_scenes: 64,
             field: None,
         }
     }
@@ -426,6 +435,7 @@ pub fn diagnose(
         sigma0: config.sigma0,
         seed: config.seed,
         rescore: config.rescore,
+        rescore_scenes: config.rescore_scenes,
     };
     check_distinct(&config.base, None)?;
     let refit = |cand: Option<Candidate>| -> Result<Model, GapError> {

@@ -41,9 +41,11 @@ fn mde_cm(family: &CandidateFamily, real: &[f64], val: &[Scene]) -> f64 {
 #[test]
 fn without_base_effects_the_control_is_the_plain_backbone_refit() {
     let (train, val) = (scenes(dataset::Split::Train), scenes(dataset::Split::Val));
-    // With the final rescoring on, so that it too is shown to be the fit crate's.
+    // With the final rescoring on, on a subset of the training scenes, so that both are
+    // shown to be the fit crate's.
     let cfg = DiagnoseConfig {
         rescore: 2,
+        rescore_scenes: train.len() - 1,
         ..tiny(Vec::new())
     };
     let d = gap::diagnose(&train, &val, &backbone(), &cfg, &mut |_| {}).unwrap();
@@ -58,6 +60,7 @@ fn without_base_effects_the_control_is_the_plain_backbone_refit() {
         sigma0: cfg.sigma0,
         seed: cfg.seed,
         rescore: cfg.rescore,
+        rescore_scenes: cfg.rescore_scenes,
     };
     let out = fit::fit(&train, &plain, &fit_cfg, None, &mut |_| {}).unwrap();
     let fitted: Vec<f64> = d.control.fitted.iter().map(|(_, v)| *v).collect();
