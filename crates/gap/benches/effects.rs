@@ -91,7 +91,7 @@ fn bench(c: &mut Criterion) {
             masses: None,
             effects: effect.into_iter().collect(),
         };
-        let bb = Backbone::with_options(&x, &[], params(), config.clone(), options)
+        let bb = Backbone::with_options(&x, &[], params(), config, options)
             .expect("lattice with effect");
         let mut sc = bb.scratch();
         c.bench_function(&format!("lattice_1000p/step_0.1s/{name}"), |b| {
