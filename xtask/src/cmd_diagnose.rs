@@ -51,7 +51,7 @@ pub struct DiagnoseArgs {
     /// is kept (0: the best candidate by its own generation's sampled episodes).
     #[arg(long, default_value_t = 3)]
     pub rescore: usize,
-    /// Most training episodes that rescoring scores: a subset of this many, drawn with the
+    /// Most training episodes the rescoring scores: a subset of this many, drawn with the
     /// seed, when there are more (0: all; the default 64 keeps a default-size dataset's
     /// diagnosis within ten minutes on 2 cores, `docs/gap.md`).
     #[arg(long, default_value_t = 64)]

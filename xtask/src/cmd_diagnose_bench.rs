@@ -158,7 +158,7 @@ pub struct DiagnoseBenchArgs {
     /// is kept (0: the best candidate by its own generation's sampled episodes).
     #[arg(long, default_value_t = 3)]
     pub rescore: usize,
-    /// Most training episodes that rescoring scores (a seeded subset when there are more;
+    /// Most training episodes the rescoring scores (a seeded subset when there are more;
     /// 0: all).
     #[arg(long, default_value_t = 64)]
     pub rescore_scenes: usize,
