@@ -52,8 +52,8 @@ pub struct DiagnoseArgs {
     #[arg(long, default_value_t = 3)]
     pub rescore: usize,
     /// Most training episodes the rescoring scores: a subset of this many, drawn with the
-    /// seed, when there are more (0: all; the default 64 keeps a default-size dataset's
-    /// diagnosis within ten minutes on 2 cores, `docs/gap.md`).
+    /// seed, when there are more (0: all; with 100 training episodes the default 64 saves
+    /// about 13 % of each refit's rollouts, `docs/gap.md`).
     #[arg(long, default_value_t = 64)]
     pub rescore_scenes: usize,
     /// Window of each episode.

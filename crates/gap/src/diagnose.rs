@@ -53,8 +53,8 @@ pub struct DiagnoseConfig {
     /// 0: all, as in reports written before the cap existed, hence the serde default).
     /// Default 64: eight times the scenes a generation samples. Datasets of up to 64 training
     /// episodes (the bench's, DEFORM's 56) are rescored on all of them as before; a
-    /// default-size generated dataset (100) on 64, which keeps its diagnosis within ten
-    /// minutes on 2 cores (docs/gap.md).
+    /// default-size generated dataset (100) on 64, about 13 % fewer rollouts per refit
+    /// (docs/gap.md).
     #[serde(default)]
     pub rescore_scenes: usize,
     /// A refined stiffness field (log factor per tracked particle, `fit::refine_stiffness`)
