@@ -286,45 +286,44 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
         t0.elapsed().as_secs_f64(),
         args.out.join("report.html").display()
     );
-    // The user's next step: diagnose again with the verdict's effect in the model.
-    if let Ok(c) = Candidate::parse(&d.verdict) {
-        let (params, next) = d.refitted_model(&backbone.params, Some(c))?;
-        let list: Vec<String> = next.iter().map(BaseEffect::label).collect();
-        println!(
-            "to diagnose the model with it: --with {} (values refitted here)",
-            list.join(",")
-        );
+    // The user's next step: diagnose again with the verdict's effect in the model. With the
+    // verdict `none` / `unknown` there is no effect to add, but the control refit (the same
+    // model refitted on the train split) may still differ from the model as given, for better
+    // or worse: `--write-run` writes it, with both scores.
+    let added = Candidate::parse(&d.verdict).ok();
+    if added.is_some() || args.write_run.is_some() {
+        let (params, effects) = d.refitted_model(&backbone.params, added)?;
+        if added.is_some() {
+            let list: Vec<String> = effects.iter().map(BaseEffect::label).collect();
+            println!(
+                "to diagnose the model with it: --with {} (values refitted here)",
+                list.join(",")
+            );
+        }
         if let Some(dir) = &args.write_run {
             let mut file = backbone.clone();
             file.params = params;
-            file.effects = next;
+            file.effects = effects;
             file.protocol = protocol.name().to_string();
             std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
             write_json(&backbone_path(dir), &file)?;
-            println!(
-                "wrote {} ({}, refitted here)",
-                backbone_path(dir).display(),
-                file.label()
-            );
+            if added.is_some() {
+                println!(
+                    "wrote {} ({}, refitted here)",
+                    backbone_path(dir).display(),
+                    file.label()
+                );
+            } else {
+                println!(
+                    "verdict {}: no effect to add; wrote the control refit to {} ({}; held-out MDE {:.3} cm, as given {:.3} cm)",
+                    d.verdict,
+                    backbone_path(dir).display(),
+                    file.label(),
+                    d.control.heldout_mde_cm,
+                    d.backbone_as_given.mde_cm
+                );
+            }
         }
-    } else if let Some(dir) = &args.write_run {
-        // No effect to add; the control refit (the same model refitted on the train split) may
-        // still differ from the model as given, for better or worse: written, with both scores.
-        let (params, effects) = d.refitted_model(&backbone.params, None)?;
-        let mut file = backbone.clone();
-        file.params = params;
-        file.effects = effects;
-        file.protocol = protocol.name().to_string();
-        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-        write_json(&backbone_path(dir), &file)?;
-        println!(
-            "verdict {}: no effect to add; wrote the control refit to {} ({}; held-out MDE {:.3} cm, as given {:.3} cm)",
-            d.verdict,
-            backbone_path(dir).display(),
-            file.label(),
-            d.control.heldout_mde_cm,
-            d.backbone_as_given.mde_cm
-        );
     }
     Ok(d)
 }
