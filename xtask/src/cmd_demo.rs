@@ -10,7 +10,7 @@ use scene::{Protocol, Scene, SceneConfig};
 
 use crate::cmd_eval::{self, EvalArgs};
 use crate::cmd_fit::{self, BoundsArg, FitArgs};
-use crate::common::ProtocolArg;
+use crate::common::{ProtocolArg, SubstepArg};
 use crate::report::write_ply;
 
 /// Arguments of `demo`.
@@ -90,6 +90,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
             rescore_scenes: 0,
             protocol: ProtocolArg::Paper,
             bounds: BoundsArg::Reference,
+            substep: SubstepArg::Auto,
             quiet: true,
         })?;
         let report = cmd_eval::run(&EvalArgs {

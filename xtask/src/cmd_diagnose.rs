@@ -8,10 +8,11 @@ use std::time::Instant;
 use anyhow::Context;
 use dataset::{Dataset, Split};
 use gap::{BaseEffect, Candidate, DiagnoseConfig, Diagnosis};
-use scene::{Protocol, Scene, SceneConfig};
+use scene::{Protocol, Scene};
 
 use crate::common::{
-    ProtocolArg, backbone_path, load_scenes, predict_tracked, read_backbone, read_residual, scenes,
+    BackboneFile, ProtocolArg, SubstepArg, backbone_path, load_scenes, predict_tracked,
+    read_backbone, read_residual, scenes,
 };
 use crate::report::write_json;
 
@@ -96,6 +97,11 @@ pub struct DiagnoseArgs {
     /// stiffness field of the run (`refine`) is kept as it is: the diagnosis holds it fixed.
     #[arg(long)]
     pub write_run: Option<PathBuf>,
+    /// How the simulator chooses its substep in every rollout of the diagnosis (the backbone
+    /// as given included): every contender is refitted and compared under it. Default: the
+    /// run's own. `--write-run` records it in the model it writes.
+    #[arg(long, value_enum)]
+    pub substep: Option<SubstepArg>,
     /// Print only the verdict line.
     #[arg(long)]
     pub quiet: bool,
@@ -183,12 +189,14 @@ pub(crate) fn learnable_line(l: &gap::Learnable) -> String {
 pub(crate) fn network_errors(
     data: &Dataset,
     protocol: Protocol,
-    params: &springs::SpringParams,
+    backbone: &BackboneFile,
     options: &residual::BackboneOptionsFn,
     net: &residual::ResidualNet,
 ) -> anyhow::Result<(Vec<f64>, Vec<f64>)> {
     use rayon::prelude::*;
-    let val = load_scenes(data, Split::Val, protocol, &SceneConfig::default())?;
+    // The network was trained on the run's backbone, under the run's integrator.
+    let params = &backbone.params;
+    let val = load_scenes(data, Split::Val, protocol, &backbone.substep.scene_config())?;
     let mde = |scene: &Scene, pred: &[Vec<glam::Vec3>]| -> anyhow::Result<f64> {
         let e = scene::score_steps(scene, pred, false)?;
         Ok(100.0 * e.iter().map(|x| x.mde).sum::<f64>() / e.len().max(1) as f64)
@@ -240,8 +248,9 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
     let data = Dataset::open(&args.data)?;
     let backbone = read_backbone(&args.run)?;
     let protocol: Protocol = args.protocol.into();
-    let train = scenes(&data, Split::Train, protocol)?;
-    let val = scenes(&data, Split::Val, protocol)?;
+    let substep = args.substep.unwrap_or(backbone.substep);
+    let train = scenes(&data, Split::Train, protocol, substep)?;
+    let val = scenes(&data, Split::Val, protocol, substep)?;
     if let Some(dir) = &args.write_run {
         check_write_run(dir, &args.run)?;
     }
@@ -250,6 +259,9 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
     // global stiffness it multiplies.
     config.field = backbone.refined.as_ref().map(|r| r.log_factor.clone());
     let quiet = args.quiet;
+    if !quiet {
+        println!("  substep rule: {}", substep.name());
+    }
     let d = gap::diagnose(&train, &val, &backbone.params, &config, &mut |line| {
         if !quiet {
             println!("  {line}");
@@ -260,8 +272,7 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
         && let Some(net) = read_residual(&args.run)?
     {
         let options = backbone.options_for(&data, protocol)?;
-        let (network, backbone_alone) =
-            network_errors(&data, protocol, &backbone.params, &options, &net)?;
+        let (network, backbone_alone) = network_errors(&data, protocol, &backbone, &options, &net)?;
         gap::add_learnable(&mut d, &network, &backbone_alone)?;
         if let Some(l) = &d.learnable {
             println!("  {}", learnable_line(l));
@@ -305,6 +316,7 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
             file.params = params;
             file.effects = effects;
             file.protocol = protocol.name().to_string();
+            file.substep = substep;
             std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
             write_json(&backbone_path(dir), &file)?;
             if added.is_some() {

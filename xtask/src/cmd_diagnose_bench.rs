@@ -32,8 +32,7 @@ use world::{EffectKind, Effects, ObjectKind};
 
 use super::write_report;
 use crate::cmd_fit::BoundsArg;
-use crate::common::scenes;
-use crate::common::{BackboneFile, backbone_path, read_residual};
+use crate::common::{BackboneFile, SubstepArg, backbone_path, read_residual, scenes};
 use crate::report::write_json;
 
 /// Which cases run on which object.
@@ -162,6 +161,10 @@ pub struct DiagnoseBenchArgs {
     /// 0: all).
     #[arg(long, default_value_t = 64)]
     pub rescore_scenes: usize,
+    /// The substep rule of every diagnosis (`diagnose --substep`); the backbones are fitted
+    /// with `fit`'s default, `auto`, either way.
+    #[arg(long, value_enum, default_value_t = SubstepArg::Auto)]
+    pub substep: SubstepArg,
     /// Most base effects per object (0: diagnose against the bare backbone).
     #[arg(long, default_value_t = 2)]
     pub max_base: usize,
@@ -388,10 +391,10 @@ fn displacement_cm(
     Ok(100.0 * world::effect_displacement_m(&cfg)?)
 }
 
-fn split(data: &Dataset) -> anyhow::Result<(Vec<Scene>, Vec<Scene>)> {
+fn split(data: &Dataset, substep: SubstepArg) -> anyhow::Result<(Vec<Scene>, Vec<Scene>)> {
     Ok((
-        scenes(data, Split::Train, Protocol::Paper)?,
-        scenes(data, Split::Val, Protocol::Paper)?,
+        scenes(data, Split::Train, Protocol::Paper, substep)?,
+        scenes(data, Split::Val, Protocol::Paper, substep)?,
     ))
 }
 
@@ -481,8 +484,12 @@ fn base_model(
     let t0 = Instant::now();
     let dir = args.work.join(format!("{object}-none"));
     let data = generate(object, Effects::none(), args.seed, args, &dir)?;
-    let (train, val) = split(&data)?;
-    let (backbone, outcome, fit_cfg) = fit_backbone(&train, args)?;
+    let (train, val) = split(&data, args.substep)?;
+    let (backbone, outcome, fit_cfg) = if args.substep == SubstepArg::Auto {
+        fit_backbone(&train, args)?
+    } else {
+        fit_backbone(&split(&data, SubstepArg::Auto)?.0, args)?
+    };
     let (mut start, mut base) = (backbone, Vec::new());
     let mut steps = Vec::new();
     let last = loop {
@@ -551,6 +558,7 @@ fn base_model(
         session_wall_s: m.wall_s,
         effects: base.clone(),
         refined: None,
+        substep: args.substep,
     };
     Ok((m, base, file))
 }
@@ -589,8 +597,7 @@ fn add_network(
     let net = read_residual(run)?
         .ok_or_else(|| anyhow::anyhow!("training wrote no network to {}", run.display()))?;
     let options = file.options_for(data, Protocol::Paper)?;
-    let (network, alone) =
-        super::network_errors(data, Protocol::Paper, &file.params, &options, &net)?;
+    let (network, alone) = super::network_errors(data, Protocol::Paper, file, &options, &net)?;
     gap::add_learnable(d, &network, &alone)?;
     Ok(())
 }
@@ -616,7 +623,7 @@ fn calibrate(
             args,
             &dir,
         )?;
-        let (train, val) = split(&data)?;
+        let (train, val) = split(&data, args.substep)?;
         let (_, mde) = control_only(&train, &val, &model.model, base, args)?;
         let rung = Rung {
             scale: s,
@@ -768,7 +775,7 @@ pub fn run_bench(args: &DiagnoseBenchArgs) -> anyhow::Result<BenchSummary> {
                 let dir = data.root.clone();
                 (data, dir, scale, ladder, reached)
             };
-            let (train, val) = split(&data)?;
+            let (train, val) = split(&data, args.substep)?;
             let td = Instant::now();
             let mut d = diagnose(&train, &val, &model.model, &base, args)?;
             let wall = td.elapsed().as_secs_f64();

@@ -7,7 +7,7 @@ use anyhow::Context;
 use dataset::{Dataset, Split};
 use metrics::{ChamferConvention, RolloutAggregate};
 use rayon::prelude::*;
-use scene::{Protocol, SceneConfig, StepErrors};
+use scene::{Protocol, StepErrors};
 use serde::Serialize;
 
 use crate::common::{
@@ -120,7 +120,12 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
     let data = Dataset::open(&args.data)?;
     let backbone = read_backbone(&args.run)?;
     let protocol: Protocol = args.protocol.into();
-    let scenes = load_scenes(&data, args.split, protocol, &SceneConfig::default())?;
+    let scenes = load_scenes(
+        &data,
+        args.split,
+        protocol,
+        &backbone.substep.scene_config(),
+    )?;
     let net = read_residual(&args.run)?;
     let model_name = if net.is_some() {
         "pgrd".to_string()

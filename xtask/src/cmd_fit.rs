@@ -8,7 +8,9 @@ use dataset::{Dataset, Split};
 use fit::{BackboneFamily, FitConfig};
 use indicatif::{ProgressBar, ProgressStyle};
 
-use crate::common::{BackboneFile, ProtocolArg, backbone_path, scenes, warn_if_unconnected};
+use crate::common::{
+    BackboneFile, ProtocolArg, SubstepArg, backbone_path, scenes, warn_if_unconnected,
+};
 use crate::report::write_json;
 
 /// Arguments of `fit`.
@@ -47,6 +49,10 @@ pub struct FitArgs {
     /// Search bounds: the reference code's, or its wider set used for the paper.
     #[arg(long, value_enum, default_value_t = BoundsArg::Reference)]
     pub bounds: BoundsArg,
+    /// How the simulator chooses its substep; recorded in backbone.json, and `eval`, `train`
+    /// and `diagnose` use the run's.
+    #[arg(long, value_enum, default_value_t = SubstepArg::Auto)]
+    pub substep: SubstepArg,
     /// Print nothing but the final line.
     #[arg(long)]
     pub quiet: bool,
@@ -83,7 +89,7 @@ impl BoundsArg {
 pub fn run(args: &FitArgs) -> anyhow::Result<BackboneFile> {
     let t0 = Instant::now();
     let data = Dataset::open(&args.data)?;
-    let scenes = scenes(&data, Split::Train, args.protocol.into())?;
+    let scenes = scenes(&data, Split::Train, args.protocol.into(), args.substep)?;
     std::fs::create_dir_all(&args.run)
         .with_context(|| format!("creating {}", args.run.display()))?;
     let family = BackboneFamily::new(args.bounds.bounds())?;
@@ -150,6 +156,7 @@ pub fn run(args: &FitArgs) -> anyhow::Result<BackboneFile> {
         session_wall_s: t0.elapsed().as_secs_f64(),
         effects: Vec::new(),
         refined: None,
+        substep: args.substep,
     };
     write_json(&backbone_path(&args.run), &file)?;
     println!(
@@ -166,4 +173,43 @@ pub fn run(args: &FitArgs) -> anyhow::Result<BackboneFile> {
         backbone_path(&args.run).display()
     );
     Ok(file)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::common::read_backbone;
+
+    #[test]
+    fn the_run_records_its_substep_rule_and_older_runs_read_as_auto() {
+        let dir = std::env::temp_dir().join(format!("pgrd-fit-substep-{}", std::process::id()));
+        let args = FitArgs {
+            data: concat!(env!("CARGO_MANIFEST_DIR"), "/../fixtures/rope").into(),
+            run: dir.clone(),
+            population: 2,
+            generations: 1,
+            samples: 1,
+            seed: 0,
+            rescore: 0,
+            rescore_scenes: 0,
+            protocol: ProtocolArg::Paper,
+            bounds: BoundsArg::Reference,
+            substep: SubstepArg::Spectral,
+            quiet: true,
+        };
+        run(&args).unwrap();
+        let path = backbone_path(&dir);
+        let text = std::fs::read_to_string(&path).unwrap();
+        assert!(text.contains(r#""substep": "spectral""#), "{text}");
+        assert_eq!(read_backbone(&dir).unwrap().substep, SubstepArg::Spectral);
+        // A run written before the field existed was fitted with the default rule.
+        let mut json: serde_json::Value = serde_json::from_str(&text).unwrap();
+        json.as_object_mut().unwrap().remove("substep");
+        std::fs::write(&path, serde_json::to_string(&json).unwrap()).unwrap();
+        let old = read_backbone(&dir).unwrap();
+        assert_eq!(old.substep, SubstepArg::Auto);
+        // ... and writes no key, so older readers still parse it.
+        assert!(!serde_json::to_string(&old).unwrap().contains("substep"));
+        std::fs::remove_dir_all(&dir).ok();
+    }
 }

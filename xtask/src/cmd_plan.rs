@@ -12,7 +12,7 @@ use plan::{
 };
 use serde::Serialize;
 
-use crate::common::{BackboneFile, read_backbone, read_residual};
+use crate::common::{BackboneFile, SubstepArg, read_backbone, read_residual};
 use crate::report::{Curve, plot_curves, write_json};
 
 /// `--model`.
@@ -130,6 +130,14 @@ pub fn run(args: &PlanArgs) -> anyhow::Result<()> {
         "{} holds a refined stiffness field (`cargo xtask refine`), which is placed on the \
          training data's tracked particles; planning builds its rope from the task",
         args.run.display()
+    );
+    // The planner's forward models use the default substep rule.
+    anyhow::ensure!(
+        backbone.substep == SubstepArg::Auto,
+        "{} was fitted with `--substep {}`; the planner's models use `auto` (fit the run again \
+         without --substep)",
+        args.run.display(),
+        backbone.substep.name()
     );
     let net = read_residual(&args.run)?.map(std::sync::Arc::new);
     let models = if args.model.is_empty() {

@@ -16,7 +16,7 @@ use gsplat::{
 use metrics::RolloutAggregate;
 use metrics::image::{boundary_f_measure, mask_iou};
 use metrics::lpips::Lpips;
-use scene::{Protocol, Scene, SceneConfig, Window};
+use scene::{Protocol, Scene, Window};
 use serde::Serialize;
 use world::TruthGaussians;
 
@@ -411,9 +411,14 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
     let truth = load_truth(&data, index, &episode)?;
     let protocol: Protocol = args.protocol.into();
     let window = protocol.window(episode.frames())?;
-    let scene = Scene::new(&data.meta, &episode, window, &SceneConfig::default())
-        .with_context(|| format!("episode {index}"))?;
     let backbone = read_backbone(&args.run)?;
+    let scene = Scene::new(
+        &data.meta,
+        &episode,
+        window,
+        &backbone.substep.scene_config(),
+    )
+    .with_context(|| format!("episode {index}"))?;
     let net = read_residual(&args.run)?;
     let history = match &net {
         Some(_) => Some(residual::History::from_episode(

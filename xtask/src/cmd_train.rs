@@ -10,7 +10,6 @@ use residual::{
     Combine, EncoderKind, ModelConfig, ResidualError, ResidualKind, ResidualNet, SimGradient,
     StartFrom, TrainConfig, TrainLoss, TrainSet, Trainer, clearly_better,
 };
-use scene::SceneConfig;
 use serde::{Deserialize, Serialize};
 
 use crate::common::{ProtocolArg, read_backbone};
@@ -396,7 +395,7 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
         &data,
         Split::Train,
         &backbone.params,
-        &SceneConfig::default(),
+        &backbone.substep.scene_config(),
         args.protocol.into(),
         options,
     )

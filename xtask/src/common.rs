@@ -26,6 +26,45 @@ impl From<ProtocolArg> for Protocol {
     }
 }
 
+/// `--substep` on the command line: how the simulator chooses its substep (docs/physics.md,
+/// "Substeps"). A run records the one it was fitted under, and `eval` and `train` use it.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SubstepArg {
+    /// Gershgorin's bound on the springs' stiffness: holds in every state where no spring is
+    /// compressed below half its rest length.
+    #[default]
+    Auto,
+    /// The largest eigenvalue of the springs' stiffness at rest (Lanczos): 1.6–1.9 times fewer
+    /// substeps on the generated objects, safety margin 0.9 only.
+    Spectral,
+}
+
+impl SubstepArg {
+    /// The scene settings with this substep.
+    pub fn scene_config(self) -> SceneConfig {
+        SceneConfig {
+            substep: match self {
+                SubstepArg::Auto => springs::Substep::AUTO,
+                SubstepArg::Spectral => springs::Substep::SPECTRAL,
+            },
+            ..SceneConfig::default()
+        }
+    }
+
+    /// The name used on the command line and in files.
+    pub fn name(self) -> &'static str {
+        match self {
+            SubstepArg::Auto => "auto",
+            SubstepArg::Spectral => "spectral",
+        }
+    }
+
+    fn is_auto(&self) -> bool {
+        *self == SubstepArg::Auto
+    }
+}
+
 /// Loads every episode of `split` and builds its scene. Returns (episode index, scene) pairs.
 pub fn load_scenes(
     data: &Dataset,
@@ -51,9 +90,15 @@ pub fn load_scenes(
         .collect()
 }
 
-/// The scenes of a split with the default scene settings, without their episode indices.
-pub fn scenes(data: &Dataset, split: Split, protocol: Protocol) -> anyhow::Result<Vec<Scene>> {
-    Ok(load_scenes(data, split, protocol, &SceneConfig::default())?
+/// The scenes of a split with the default scene settings and `substep`, without their episode
+/// indices.
+pub fn scenes(
+    data: &Dataset,
+    split: Split,
+    protocol: Protocol,
+    substep: SubstepArg,
+) -> anyhow::Result<Vec<Scene>> {
+    Ok(load_scenes(data, split, protocol, &substep.scene_config())?
         .into_iter()
         .map(|(_, s)| s)
         .collect())
@@ -86,6 +131,10 @@ pub struct BackboneFile {
     /// Spring-Mass" baseline), with its history; absent for a plain fit.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub refined: Option<fit::RefineOutcome>,
+    /// The substep rule the parameters were fitted under (absent: `auto`); the damping and the
+    /// effects' values are fitted for that integrator, so `eval` and `train` use it too.
+    #[serde(default, skip_serializing_if = "SubstepArg::is_auto")]
+    pub substep: SubstepArg,
 }
 
 impl BackboneFile {
@@ -129,7 +178,8 @@ impl BackboneFile {
                 with_field(springs::BackboneOptions::default())
             }));
         }
-        let train = scenes(data, Split::Train, protocol)?;
+        // The frame depends on the tracked positions only, not on the integrator.
+        let train = scenes(data, Split::Train, protocol, SubstepArg::Auto)?;
         let frame = gap::material_frame(&train)?;
         let effects = self.effects.clone();
         Ok(std::sync::Arc::new(move || {

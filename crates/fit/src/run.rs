@@ -155,6 +155,10 @@ struct Checkpoint {
     family: String,
     config: FitConfig,
     scenes: usize,
+    /// The scenes' substep rule: the damping is fitted for one integrator. Absent in
+    /// checkpoints written before it was recorded, all of which used the default.
+    #[serde(default)]
+    substep: Option<springs::Substep>,
     es: CmaEs,
     outcome: FitOutcome,
 }
@@ -219,7 +223,12 @@ pub fn fit<F: Family>(
                 rescore_scenes: config.rescore_scenes,
                 ..ck.config.clone()
             };
-            if ck.family != family.name() || same != *config || ck.scenes != scenes.len() {
+            let substep = ck.substep.unwrap_or(springs::Substep::AUTO);
+            if ck.family != family.name()
+                || same != *config
+                || ck.scenes != scenes.len()
+                || scenes.iter().any(|s| s.sim_config().substep != substep)
+            {
                 return Err(checkpoint_error(
                     path,
                     "was written by a fit with other settings or data; remove it to start afresh",
@@ -281,6 +290,7 @@ pub fn fit<F: Family>(
                 family: family.name(),
                 config: config.clone(),
                 scenes: scenes.len(),
+                substep: scenes.first().map(|s| s.sim_config().substep),
                 es: es.clone(),
                 outcome: outcome.clone(),
             };

@@ -10,6 +10,15 @@ use springs::{Actions, Backbone, SimConfig, SpringParams, State};
 /// A 24-particle rope hanging from a gripper that swings it; frames made by the backbone itself
 /// with `truth` parameters.
 fn synthetic_scenes(truth: &SpringParams, count: usize) -> (DatasetMeta, Vec<Scene>) {
+    synthetic_scenes_with(truth, count, &SceneConfig::default())
+}
+
+/// [`synthetic_scenes`] built with other scene settings.
+fn synthetic_scenes_with(
+    truth: &SpringParams,
+    count: usize,
+    config: &SceneConfig,
+) -> (DatasetMeta, Vec<Scene>) {
     let mut meta = DatasetMeta::new("rope", 10.0, Manipulation::Grasp);
     meta.gravity = [0.0, 0.0, -9.8];
     let rest: Vec<Vec3> = (0..24)
@@ -39,7 +48,7 @@ fn synthetic_scenes(truth: &SpringParams, count: usize) -> (DatasetMeta, Vec<Sce
                 .with_held(held.clone())
                 .unwrap();
             let window = Protocol::Paper.window(frames).unwrap();
-            Scene::new(&meta, &ep, window, &SceneConfig::default()).unwrap()
+            Scene::new(&meta, &ep, window, config).unwrap()
         })
         .collect();
     (meta, scenes)
@@ -111,6 +120,13 @@ fn resumed_fit_equals_uninterrupted() {
     let mut other = config.clone();
     other.seed = 12;
     assert!(fit(&scenes, &family, &other, Some(&ck), &mut |_| {}).is_err());
+    // So is one fitted under another substep rule: its damping suits another integrator.
+    let spectral = SceneConfig {
+        substep: springs::Substep::SPECTRAL,
+        ..SceneConfig::default()
+    };
+    let (_, spectral_scenes) = synthetic_scenes_with(&truth(), 3, &spectral);
+    assert!(fit(&spectral_scenes, &family, &config, Some(&ck), &mut |_| {}).is_err());
     config.generations = 4;
     let mut resumed = fit(&scenes, &family, &config, Some(&ck), &mut |_| {}).unwrap();
     assert_eq!(resumed.resumed_from, Some(2));

@@ -219,6 +219,10 @@ pub struct Diagnosis {
     pub learnable: Option<crate::Learnable>,
     /// The settings.
     pub config: DiagnoseConfig,
+    /// The substep rule of every rollout: the scenes' own (absent in reports written before
+    /// it was recorded, all of which used [`springs::Substep::AUTO`]).
+    #[serde(default)]
+    pub substep: Option<springs::Substep>,
     /// Training / held-out episodes.
     pub episodes: [usize; 2],
     /// Wall time, s.
@@ -407,6 +411,17 @@ pub fn diagnose(
         ));
     }
     config.rule.check()?;
+    // Every contender is compared under one integrator.
+    let substep = train[0].sim_config().substep;
+    if train
+        .iter()
+        .chain(val)
+        .any(|s| s.sim_config().substep != substep)
+    {
+        return Err(GapError::Config(
+            "the training and held-out scenes use different substep rules".into(),
+        ));
+    }
     if let Some(s) = train
         .iter()
         .chain(val)
@@ -610,6 +625,7 @@ pub fn diagnose(
         control: control_fit,
         learnable: None,
         config: config.clone(),
+        substep: Some(train[0].sim_config().substep),
         episodes: [train.len(), val.len()],
         wall_s: t0.elapsed().as_secs_f64(),
     })

@@ -191,12 +191,14 @@ impl Effect for StrainStiffening {
         Ok(())
     }
     fn stability(&self, backbone: &Backbone, row: &mut [f32], _damping: &mut [f32]) {
-        // Tangent stiffness of the extra term is at most 3 β ε_max² k.
-        let factor = 3.0 * self.beta * STIFFENING_MAX_STRAIN * STIFFENING_MAX_STRAIN;
+        let factor = self.tangent_factor();
         for (k, [a, b]) in backbone.stiffness().iter().zip(backbone.springs()) {
             row[*a as usize] += 2.0 * factor * k;
             row[*b as usize] += 2.0 * factor * k;
         }
+    }
+    fn spring_stiffness_factor(&self) -> Option<f32> {
+        Some(self.tangent_factor().max(0.0))
     }
     fn add_forces(
         &self,
@@ -255,6 +257,12 @@ impl Effect for StrainStiffening {
 }
 
 impl StrainStiffening {
+    /// The extra axial tangent stiffness as a fraction of the spring's own: at most
+    /// `3 β ε_max²` in tension, negative (softening) in compression.
+    fn tangent_factor(&self) -> f32 {
+        3.0 * self.beta * STIFFENING_MAX_STRAIN * STIFFENING_MAX_STRAIN
+    }
+
     /// The axial force beyond the linear spring's, N (tension positive), of a spring of
     /// stiffness `k` stretched by `dl` (m), strain `dl / l₀`.
     #[inline(always)]

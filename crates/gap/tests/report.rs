@@ -4,7 +4,7 @@
 use gap::{Candidate, DiagnoseConfig};
 
 mod common;
-use common::{backbone, scenes};
+use common::{backbone, scenes, scenes_with};
 
 #[test]
 fn report_json_has_the_documented_schema() {
@@ -72,6 +72,9 @@ fn report_json_has_the_documented_schema() {
     assert_eq!(v["control"]["fitted"].as_array().unwrap().len(), 3);
     assert!(v["control"]["heldout_mde_cm"].as_f64().unwrap().is_finite());
     assert!(v["config"]["base"].as_array().unwrap().is_empty());
+    // The integrator every number was made with: the scenes' own.
+    assert_eq!(d.substep, Some(springs::Substep::AUTO));
+    assert!(v["substep"]["Auto"].is_object());
     let w = &v["where"];
     assert_eq!(
         w["per_particle_cm"].as_array().unwrap().len(),
@@ -89,6 +92,31 @@ fn report_json_has_the_documented_schema() {
         !html.contains("src=") && !html.contains("href="),
         "the page must not load anything"
     );
+}
+
+#[test]
+fn splits_under_different_substep_rules_are_refused() {
+    // Contenders compared under two integrators would differ by the integrator too.
+    let train = scenes(dataset::Split::Train);
+    let spectral = scene::SceneConfig {
+        substep: springs::Substep::SPECTRAL,
+        ..scene::SceneConfig::default()
+    };
+    let val = scenes_with(dataset::Split::Val, &spectral);
+    let r = gap::diagnose(
+        &train,
+        &val,
+        &backbone(),
+        &DiagnoseConfig::default(),
+        &mut |_| {},
+    );
+    match r {
+        Err(gap::GapError::Config(m)) => assert!(m.contains("substep"), "{m}"),
+        other => panic!(
+            "expected a configuration error, got {:?}",
+            other.map(|d| d.verdict)
+        ),
+    }
 }
 
 #[test]

@@ -254,7 +254,9 @@ impl Backbone {
 
     /// Per-particle Gershgorin rows (N/m) of the stiffness — the springs' own `2 Σ k` when
     /// `springs` is set, then the ground's and the effects' — and of the explicit damping
-    /// (N·s/m: the explicit dashpot's `2 Σ c`, then the effects').
+    /// (N·s/m: the explicit dashpot's `2 Σ c`, then the effects'). Without `springs`, the
+    /// stiffness rows of effects that scale the springs ([`Effect::spring_stiffness_factor`])
+    /// are left out too: [`Self::spectral_bound`] scales the springs' eigenvalue instead.
     fn gershgorin_rows(&self, springs: bool) -> (Vec<f32>, Vec<f32>) {
         let n = self.rest_positions.len();
         let mut row = vec![0.0f32; n];
@@ -276,17 +278,25 @@ impl Backbone {
                 *r += GROUND_STIFFNESS;
             }
         }
+        let mut unused = Vec::new();
         for e in &self.effects {
-            e.stability(self, &mut row, &mut damp);
+            if !springs && e.spring_stiffness_factor().is_some() {
+                unused.clear();
+                unused.resize(n, 0.0);
+                e.stability(self, &mut unused, &mut damp);
+            } else {
+                e.stability(self, &mut row, &mut damp);
+            }
         }
         (row, damp)
     }
 
     /// Largest stable substep for [`Substep::Spectral`], s: as [`Self::stability_bound`], with
     /// the springs' part of the stiffness bound replaced by the Lanczos estimate of the largest
-    /// eigenvalue of their `M^-1 K` at rest. The ground's and the effects' stiffness rows are
-    /// added as Gershgorin bounds (Weyl: the largest eigenvalue of a sum is at most the sum of
-    /// the largest eigenvalues), and explicit damping enters as before.
+    /// eigenvalue of their `M^-1 K` at rest, times `1 + f` for effects that add at most `f K`
+    /// ([`Effect::spring_stiffness_factor`]). The ground's and the other effects' stiffness
+    /// rows are added as Gershgorin bounds (Weyl: the largest eigenvalue of a sum is at most
+    /// the sum of the largest eigenvalues), and explicit damping enters as before.
     fn spectral_bound(&self) -> f32 {
         let n = self.rest_positions.len();
         let (row, damp) = self.gershgorin_rows(false);
@@ -296,13 +306,21 @@ impl Backbone {
             extra = extra.max(f64::from(row[i].max(0.0)) * inv_m);
             gamma = gamma.max(f64::from(damp[i].max(0.0)) * inv_m);
         }
+        let scale = 1.0
+            + self
+                .effects
+                .iter()
+                .filter_map(|e| e.spring_stiffness_factor())
+                .map(|f| f64::from(f.max(0.0)))
+                .sum::<f64>();
         let lambda = crate::spectral::largest_eigenvalue(
             &self.springs,
             &self.stiffness,
             &self.rest_lengths,
             &self.rest_positions,
             &self.inv_mass,
-        ) + extra;
+        ) * scale
+            + extra;
         if lambda > 0.0 || gamma > 0.0 {
             (4.0 / (gamma + (gamma * gamma + 4.0 * lambda).sqrt())) as f32
         } else {

@@ -135,6 +135,16 @@ pub trait Effect: Send + Sync + Debug {
         let _ = (backbone, row_stiffness, damping);
     }
 
+    /// `Some(f)` when all of this effect's stiffness is an extra axial stiffness on the
+    /// backbone's own springs of at most `f` times each spring's stiffness (a strain-dependent
+    /// spring law), i.e. at most `f K` with `K` the springs' stiffness matrix. The spectral
+    /// substep ([`crate::Substep::Spectral`]) then scales the springs' eigenvalue estimate by
+    /// `1 + f` instead of adding the stiffness rows of [`Effect::stability`] (which must still
+    /// report them, `2 f k` per spring end, for the Gershgorin bound of the other modes).
+    fn spring_stiffness_factor(&self) -> Option<f32> {
+        None
+    }
+
     /// Fresh per-rollout state (e.g. action history, anchors); stored in the [`crate::Scratch`].
     fn new_state(&self, backbone: &Backbone) -> Box<dyn Any + Send> {
         let _ = backbone;

@@ -210,3 +210,101 @@ proptest! {
         }
     }
 }
+
+/// Adds `f k (l − l0)` along every backbone spring: the springs' own law, `f` times over, so
+/// its stiffness matrix is exactly `f K`.
+#[derive(Debug)]
+struct ScaledSprings(f32);
+
+impl springs::Effect for ScaledSprings {
+    fn name(&self) -> &str {
+        "scaled-springs"
+    }
+    fn stability(&self, bb: &Backbone, row: &mut [f32], _damping: &mut [f32]) {
+        for (k, [a, b]) in bb.stiffness().iter().zip(bb.springs()) {
+            row[*a as usize] += 2.0 * self.0 * k;
+            row[*b as usize] += 2.0 * self.0 * k;
+        }
+    }
+    fn spring_stiffness_factor(&self) -> Option<f32> {
+        Some(self.0)
+    }
+    fn add_forces(
+        &self,
+        ctx: &springs::SubstepContext<'_>,
+        _state: &mut dyn std::any::Any,
+        rest: &[f32],
+        force: &mut [glam::Vec3A],
+    ) {
+        let bb = ctx.backbone;
+        for ((k, [a, b]), l0) in bb.stiffness().iter().zip(bb.springs()).zip(rest) {
+            let (a, b) = (*a as usize, *b as usize);
+            let d = ctx.x[b] - ctx.x[a];
+            let l = d.length();
+            if l > 0.0 {
+                let f = d * (self.0 * k * (l - l0) / l);
+                force[a] += f;
+                force[b] -= f;
+            }
+        }
+    }
+}
+
+#[test]
+fn an_effect_that_scales_the_springs_scales_the_spectral_estimate() {
+    let x = common::rope(300, 0.3, 0.004, 0.01);
+    let params = SpringParams::reference_rope();
+    let f = 2.0f32;
+    let build = |substep: Substep, params: SpringParams, scaled: bool| {
+        let effects: Vec<Box<dyn springs::Effect>> = if scaled {
+            vec![Box::new(ScaledSprings(f))]
+        } else {
+            Vec::new()
+        };
+        Backbone::with_options(
+            &x,
+            &[],
+            params,
+            SimConfig {
+                substep,
+                ..SimConfig::default()
+            },
+            springs::BackboneOptions {
+                masses: None,
+                effects,
+            },
+        )
+        .unwrap()
+    };
+    // The effect's springs and the backbone's together are the backbone with (1 + f) k: the
+    // same stable substep to rounding, in either mode.
+    let stiffer = SpringParams {
+        stiffness: params.stiffness * (1.0 + f),
+        ..params
+    };
+    for substep in [Substep::SPECTRAL, Substep::AUTO] {
+        let with = build(substep, params, true).stable_dt();
+        let want = build(substep, stiffer, false).stable_dt();
+        assert!(
+            (with - want).abs() <= 1e-5 * want,
+            "{substep:?}: {with} vs {want}"
+        );
+    }
+    // Added as Gershgorin rows instead, the spectral substep would be shorter than that.
+    let plain = build(Substep::SPECTRAL, params, false);
+    let lambda = plain.stiffness_eigenvalue(&x).unwrap();
+    let mut row = vec![0.0f64; x.len()];
+    for (k, [a, b]) in plain.stiffness().iter().zip(plain.springs()) {
+        row[*a as usize] += 2.0 * f64::from(f * k);
+        row[*b as usize] += 2.0 * f64::from(f * k);
+    }
+    // Unit masses: the rows are already per unit mass.
+    let gershgorin_extra = row.iter().copied().fold(0.0, f64::max);
+    let rows = 2.0 / (lambda + gershgorin_extra + f64::from(springs::GROUND_STIFFNESS)).sqrt();
+    assert!(f64::from(build(Substep::SPECTRAL, params, true).stable_dt()) > 1.2 * rows);
+    // And a rollout at that substep stays finite: dropped onto the ground.
+    let bb = build(Substep::SPECTRAL, params, true);
+    let actions = Actions::new(vec![vec![]; 6], vec![vec![]; 6]).unwrap();
+    let out = bb.rollout(&State::at_rest(x.clone()), &actions).unwrap();
+    assert!(out.positions.iter().flatten().all(|p| p.is_finite()));
+}

@@ -4,6 +4,12 @@ use scene::{Protocol, Scene, SceneConfig};
 
 /// The rope fixture's episodes of `split` as paper-protocol scenes.
 pub fn scenes(split: dataset::Split) -> Vec<Scene> {
+    scenes_with(split, &SceneConfig::default())
+}
+
+/// [`scenes`] with other scene settings.
+#[allow(dead_code)] // not every test file uses it
+pub fn scenes_with(split: dataset::Split, config: &SceneConfig) -> Vec<Scene> {
     let root = concat!(env!("CARGO_MANIFEST_DIR"), "/../../fixtures/rope");
     let data = dataset::Dataset::open(root).unwrap();
     data.split_indices(split)
@@ -11,7 +17,7 @@ pub fn scenes(split: dataset::Split) -> Vec<Scene> {
         .map(|i| {
             let ep = data.load_episode(i).unwrap();
             let w = Protocol::Paper.window(ep.frames()).unwrap();
-            Scene::new(&data.meta, &ep, w, &SceneConfig::default()).unwrap()
+            Scene::new(&data.meta, &ep, w, config).unwrap()
         })
         .collect()
 }
