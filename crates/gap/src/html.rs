@@ -244,6 +244,15 @@ fn table<'a>(head: &[&str], rows: impl Iterator<Item = Vec<String>> + 'a) -> Str
     s + "</table>"
 }
 
+/// The substep rule as the command line names it (reports without one used `auto`).
+fn substep_name(s: Option<springs::Substep>) -> String {
+    match s {
+        None | Some(springs::Substep::Auto { .. }) => "auto".into(),
+        Some(springs::Substep::Spectral { .. }) => "spectral".into(),
+        Some(springs::Substep::Fixed { dt }) => format!("fixed {dt} s"),
+    }
+}
+
 /// The page for a diagnosis; `title` names the dataset.
 pub fn render_html(d: &Diagnosis, title: &str) -> String {
     let w = &d.r#where;
@@ -251,11 +260,12 @@ pub fn render_html(d: &Diagnosis, title: &str) -> String {
     let _ = write!(body, "<h1>Sim-to-real gap diagnosis: {}</h1>", esc(title));
     let _ = write!(
         body,
-        "<p class='verdict'>Verdict: <b>{}</b></p><p>{} training / {} held-out episodes; fitted backbone held-out MDE {:.3} cm; {:.0} s.</p>",
+        "<p class='verdict'>Verdict: <b>{}</b></p><p>{} training / {} held-out episodes; fitted backbone held-out MDE {:.3} cm; substep rule {}; {:.0} s.</p>",
         esc(&d.verdict),
         d.episodes[0],
         d.episodes[1],
         d.backbone_as_given.mde_cm,
+        substep_name(d.substep),
         d.wall_s
     );
     let base: Vec<String> = d.control.base.iter().map(|b| b.label()).collect();

@@ -88,6 +88,7 @@ fn report_json_has_the_documented_schema() {
     assert!(v["how_far"]["before"]["emd_cm"].as_f64().unwrap() > 0.0);
     let html = gap::render_html(&d, "rope fixture");
     assert!(html.starts_with("<!DOCTYPE html>") && html.contains("<svg"));
+    assert!(html.contains("substep rule auto"));
     assert!(
         !html.contains("src=") && !html.contains("href="),
         "the page must not load anything"
