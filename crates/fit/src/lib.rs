@@ -17,8 +17,8 @@
 //! - A rollout that diverges or returns non-finite values scores [`PENALTY`] instead of failing
 //!   the fit.
 //! - With a checkpoint path, the optimiser state is written atomically after every generation;
-//!   a later call with the same settings resumes from it and produces exactly the candidates
-//!   the uninterrupted run would have.
+//!   a later call with the same settings (and scenes under the same substep rule) resumes from
+//!   it and produces exactly the candidates the uninterrupted run would have.
 //!
 //! [`refine_stiffness`] is the second stage of the paper's "Diff. Spring-Mass" baseline: a
 //! stiffness that varies over the object, refined by gradient descent through the simulator's
