@@ -27,7 +27,8 @@ impl From<ProtocolArg> for Protocol {
 }
 
 /// `--substep` on the command line: how the simulator chooses its substep (docs/physics.md,
-/// "Substeps"). A run records the one it was fitted under, and `eval` and `train` use it.
+/// "Stability bound and substep choice" and "Spectral substep"). A run records the one it was
+/// fitted under, and `eval`, `train`, `refine`, `render` and `diagnose` use it.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum SubstepArg {

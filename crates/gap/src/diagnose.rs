@@ -625,7 +625,7 @@ pub fn diagnose(
         control: control_fit,
         learnable: None,
         config: config.clone(),
-        substep: Some(train[0].sim_config().substep),
+        substep: Some(substep),
         episodes: [train.len(), val.len()],
         wall_s: t0.elapsed().as_secs_f64(),
     })
