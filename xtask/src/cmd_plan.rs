@@ -12,7 +12,7 @@ use plan::{
 };
 use serde::Serialize;
 
-use crate::common::{BackboneFile, SubstepArg, read_backbone, read_residual};
+use crate::common::{BackboneFile, read_backbone, read_residual};
 use crate::report::{Curve, plot_curves, write_json};
 
 /// `--model`.
@@ -130,14 +130,6 @@ pub fn run(args: &PlanArgs) -> anyhow::Result<()> {
         "{} holds a refined stiffness field (`cargo xtask refine`), which is placed on the \
          training data's tracked particles; planning builds its rope from the task",
         args.run.display()
-    );
-    // The planner's forward models use the default substep rule.
-    anyhow::ensure!(
-        backbone.substep == SubstepArg::Auto,
-        "{} was fitted with `--substep {}`; the planner's models use `auto` (fit the run again \
-         without --substep)",
-        args.run.display(),
-        backbone.substep.name()
     );
     let net = read_residual(&args.run)?.map(std::sync::Arc::new);
     let models = if args.model.is_empty() {
@@ -412,13 +404,16 @@ fn scorers(
 /// The run's backbone for `task`, with the library effects its `backbone.json` carries (from
 /// `diagnose --write-run`). Effects placed along the object (stiffness heterogeneity, mass
 /// distribution) take their material coordinate from the task's start shape.
+/// The run's model on the task's rope, under the run's substep rule (its damping was fitted
+/// for that integrator).
 fn task_backbone(task: &Task, backbone: &BackboneFile) -> anyhow::Result<springs::Backbone> {
-    if backbone.effects.is_empty() {
-        return Ok(task.backbone(backbone.params)?);
-    }
-    let frame = gap::MaterialFrame::of_shape(&task.start.observe())?;
-    let options = gap::backbone_options(&backbone.effects, &frame);
-    Ok(task.backbone_with(backbone.params, options)?)
+    let options = if backbone.effects.is_empty() {
+        springs::BackboneOptions::default()
+    } else {
+        let frame = gap::MaterialFrame::of_shape(&task.start.observe())?;
+        gap::backbone_options(&backbone.effects, &frame)
+    };
+    Ok(task.backbone_under(backbone.params, backbone.substep.substep(), options)?)
 }
 
 /// How well `model` predicts what the world did along an executed path: from every executed

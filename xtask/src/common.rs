@@ -28,7 +28,7 @@ impl From<ProtocolArg> for Protocol {
 
 /// `--substep` on the command line: how the simulator chooses its substep (docs/physics.md,
 /// "Stability bound and substep choice" and "Spectral substep"). A run records the one it was
-/// fitted under, and `eval`, `train`, `refine`, `render` and `diagnose` use it.
+/// fitted under, and `eval`, `train`, `refine`, `render`, `diagnose` and `plan` use it.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum SubstepArg {
@@ -46,11 +46,16 @@ impl SubstepArg {
     /// The scene settings with this substep.
     pub fn scene_config(self) -> SceneConfig {
         SceneConfig {
-            substep: match self {
-                SubstepArg::Auto => springs::Substep::AUTO,
-                SubstepArg::Spectral => springs::Substep::SPECTRAL,
-            },
+            substep: self.substep(),
             ..SceneConfig::default()
+        }
+    }
+
+    /// The simulator's substep rule.
+    pub fn substep(self) -> springs::Substep {
+        match self {
+            SubstepArg::Auto => springs::Substep::AUTO,
+            SubstepArg::Spectral => springs::Substep::SPECTRAL,
         }
     }
 

@@ -7,7 +7,9 @@ use glam::Vec3;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
-use springs::{Backbone, BackboneOptions, BoxObstacle, Obstacles, SimConfig, SpringParams};
+use springs::{
+    Backbone, BackboneOptions, BoxObstacle, Obstacles, SimConfig, SpringParams, Substep,
+};
 use world::{ObjectKind, Plant, PlantConfig, Resolution};
 
 use crate::{CostMode, MppiConfig, Objective, PlanError, Result, Workspace};
@@ -363,8 +365,20 @@ impl Task {
         params: SpringParams,
         options: BackboneOptions,
     ) -> Result<Backbone> {
+        self.backbone_under(params, Substep::AUTO, options)
+    }
+
+    /// [`Task::backbone_with`] under another substep rule: a model fitted with
+    /// `Substep::SPECTRAL` has its damping fitted for that integrator, so it plans with it.
+    pub fn backbone_under(
+        &self,
+        params: SpringParams,
+        substep: Substep,
+        options: BackboneOptions,
+    ) -> Result<Backbone> {
         let config = SimConfig {
             obstacles: Obstacles::new(&self.obstacles()?)?,
+            substep,
             ..SimConfig::default()
         };
         Ok(Backbone::with_options(

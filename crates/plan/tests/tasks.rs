@@ -114,3 +114,27 @@ fn a_backbone_with_effects_predicts_differently_and_default_options_change_nothi
         "bending moved the prediction by only {moved} m"
     );
 }
+
+#[test]
+fn a_backbone_under_the_spectral_rule_takes_fewer_substeps_and_auto_is_the_default() {
+    let task = Task::build(TaskKind::RopeLift, &config(0)).unwrap();
+    // Stiff enough that the stability bound, not the 2 ms accuracy cap, sets the substep.
+    let params = springs::SpringParams {
+        stiffness: 4e5,
+        ..springs::SpringParams::reference_rope()
+    };
+    let none = springs::BackboneOptions::default;
+    let auto = task
+        .backbone_under(params, springs::Substep::AUTO, none())
+        .unwrap();
+    let spectral = task
+        .backbone_under(params, springs::Substep::SPECTRAL, none())
+        .unwrap();
+    assert_eq!(auto.substeps(), task.backbone(params).unwrap().substeps());
+    assert!(
+        spectral.substeps() < auto.substeps(),
+        "spectral {} vs auto {}",
+        spectral.substeps(),
+        auto.substeps()
+    );
+}
