@@ -57,6 +57,12 @@ pub struct DiagnoseArgs {
     /// about 13 % of each refit's rollouts, `docs/gap.md`).
     #[arg(long, default_value_t = 64)]
     pub rescore_scenes: usize,
+    /// Race the library candidates' refits (0: off): every candidate gets half the
+    /// generations, and only the best N by training loss get the rest and the rescoring; the
+    /// control and the probe always get the whole budget. Faster, at some risk to the verdict
+    /// (`docs/gap.md`, "Racing the refits").
+    #[arg(long, default_value_t = 0)]
+    pub race: usize,
     /// Window of each episode.
     #[arg(long, value_enum, default_value_t = ProtocolArg::Paper)]
     pub protocol: ProtocolArg,
@@ -141,6 +147,7 @@ fn config_from(args: &DiagnoseArgs, run_effects: &[BaseEffect]) -> anyhow::Resul
         resamples: args.resamples,
         rescore: args.rescore,
         rescore_scenes: args.rescore_scenes,
+        race: args.race,
         candidates,
         base: match &args.with {
             Some(list) => BaseEffect::parse_list(list)?,

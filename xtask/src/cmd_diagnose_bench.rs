@@ -165,6 +165,10 @@ pub struct DiagnoseBenchArgs {
     /// with `fit`'s default, `auto`, either way.
     #[arg(long, value_enum, default_value_t = SubstepArg::Auto)]
     pub substep: SubstepArg,
+    /// Race the candidates' refits in every case's diagnosis (`diagnose --race`; 0: off); the
+    /// base search's diagnoses are not raced.
+    #[arg(long, default_value_t = 0)]
+    pub race: usize,
     /// Most base effects per object (0: diagnose against the bare backbone).
     #[arg(long, default_value_t = 2)]
     pub max_base: usize,
@@ -416,14 +420,19 @@ fn fit_backbone(
     Ok((BackboneFamily::params(&out.best), out, cfg))
 }
 
+/// One diagnosis with the bench's settings; `race` as `diagnose --race` (the cases use
+/// `--race`, the base search never races, so that raced and unraced benches of one seed
+/// diagnose their cases against the same base models).
 fn diagnose(
     train: &[Scene],
     val: &[Scene],
     start: &SpringParams,
     base: &[BaseEffect],
     args: &DiagnoseBenchArgs,
+    race: usize,
 ) -> anyhow::Result<Diagnosis> {
     let cfg = DiagnoseConfig {
+        race,
         generations: args.generations,
         samples: args.samples,
         seed: args.seed,
@@ -494,7 +503,7 @@ fn base_model(
     let mut steps = Vec::new();
     let last = loop {
         let t = Instant::now();
-        let d = diagnose(&train, &val, &start, &base, args)?;
+        let d = diagnose(&train, &val, &start, &base, args, 0)?;
         write_report(
             &dir.join(format!("report-base{}", steps.len())),
             &d,
@@ -777,7 +786,7 @@ pub fn run_bench(args: &DiagnoseBenchArgs) -> anyhow::Result<BenchSummary> {
             };
             let (train, val) = split(&data, args.substep)?;
             let td = Instant::now();
-            let mut d = diagnose(&train, &val, &model.model, &base, args)?;
+            let mut d = diagnose(&train, &val, &model.model, &base, args, args.race)?;
             let wall = td.elapsed().as_secs_f64();
             let mut network_wall = 0.0;
             if args.network_minutes > 0.0 && network_cases.contains(truth) {

@@ -19,6 +19,8 @@
 //! - With a checkpoint path, the optimiser state is written atomically after every generation;
 //!   a later call with the same settings (and scenes under the same substep rule) resumes from
 //!   it and produces exactly the candidates the uninterrupted run would have.
+//! - [`PausedFit`] runs the same fit in stages in memory, so a caller can look at a run
+//!   halfway and decide whether to spend the rest of its budget on it.
 //!
 //! [`refine_stiffness`] is the second stage of the paper's "Diff. Spring-Mass" baseline: a
 //! stiffness that varies over the object, refined by gradient descent through the simulator's
@@ -34,5 +36,6 @@ pub use refine::{
     refine_stiffness, scene_gradient,
 };
 pub use run::{
-    Contender, FitConfig, FitError, FitOutcome, Generation, PENALTY, Rescore, fit, scene_loss,
+    Contender, FitConfig, FitError, FitOutcome, Generation, PENALTY, PausedFit, Rescore, fit,
+    scene_loss,
 };

@@ -193,24 +193,7 @@ pub fn fit<F: Family>(
     if scenes.is_empty() {
         return Err(FitError::NoScenes);
     }
-    let params = family.parameters();
-    let fresh = || -> Result<(CmaEs, FitOutcome), FitError> {
-        let mut cfg = params.cmaes_config(&family.x0(), config.sigma0, config.seed)?;
-        cfg.population = Some(config.population);
-        let outcome = FitOutcome {
-            family: family.name(),
-            names: params.params().iter().map(|p| p.name.clone()).collect(),
-            best: family.x0(),
-            best_loss: f64::INFINITY,
-            history: Vec::new(),
-            evaluations: 0,
-            resumed_from: None,
-            generation_best: Vec::new(),
-            rescored: None,
-        };
-        Ok((CmaEs::new(cfg)?, outcome))
-    };
-    let (mut es, mut outcome) = match checkpoint.filter(|p| p.is_file()) {
+    let mut run = match checkpoint.filter(|p| p.is_file()) {
         Some(path) => {
             let text = std::fs::read_to_string(path).map_err(|e| checkpoint_error(path, e))?;
             let ck: Checkpoint =
@@ -236,73 +219,218 @@ pub fn fit<F: Family>(
             }
             let mut outcome = ck.outcome;
             outcome.resumed_from = Some(outcome.history.len());
-            (ck.es, outcome)
-        }
-        None => fresh()?,
-    };
-    let samples = config.samples.min(scenes.len()).max(1);
-    while outcome.history.len() < config.generations {
-        let t0 = Instant::now();
-        let index = outcome.history.len();
-        let mut rng = ChaCha8Rng::seed_from_u64(
-            config.seed ^ (index as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15),
-        );
-        let mut picked = sample(&mut rng, scenes.len(), samples).into_vec();
-        picked.sort_unstable();
-        let candidates = es.ask();
-        let reals = candidates
-            .iter()
-            .map(|u| params.to_real(u))
-            .collect::<Result<Vec<_>, _>>()?;
-        let losses = losses_on(family, &reals, scenes, &picked);
-        let fitness: Vec<f64> = losses
-            .chunks(samples)
-            .map(|l| l.iter().sum::<f64>() / samples as f64)
-            .collect();
-        let diverged = losses
-            .chunks(samples)
-            .filter(|l| l.contains(&PENALTY))
-            .count();
-        es.tell(&candidates, &fitness)?;
-        let (best_c, best_loss) = fitness.iter().enumerate().fold(
-            (0, f64::INFINITY),
-            |b, (i, f)| if *f < b.1 { (i, *f) } else { b },
-        );
-        if best_loss < outcome.best_loss {
-            outcome.best_loss = best_loss;
-            outcome.best = reals[best_c].clone();
-        }
-        outcome.generation_best.push(reals[best_c].clone());
-        let mut sorted = fitness.clone();
-        sorted.sort_by(f64::total_cmp);
-        outcome.evaluations += fitness.len() as u64;
-        let generation = Generation {
-            index,
-            best_loss,
-            median_loss: sorted[sorted.len() / 2],
-            best_so_far: outcome.best_loss,
-            diverged,
-            wall_s: t0.elapsed().as_secs_f64(),
-        };
-        outcome.history.push(generation.clone());
-        if let Some(path) = checkpoint {
-            let ck = Checkpoint {
-                family: family.name(),
+            PausedFit {
+                es: ck.es,
+                outcome,
                 config: config.clone(),
                 scenes: scenes.len(),
-                substep: scenes.first().map(|s| s.sim_config().substep),
-                es: es.clone(),
-                outcome: outcome.clone(),
-            };
-            let text = serde_json::to_string(&ck).map_err(|e| checkpoint_error(path, e))?;
-            dataset::write_atomic(path, text.as_bytes()).map_err(|e| checkpoint_error(path, e))?;
+            }
         }
-        on_generation(&generation);
+        None => PausedFit::start(scenes, family, config)?,
+    };
+    run.advance_inner(
+        scenes,
+        family,
+        config.generations,
+        checkpoint,
+        on_generation,
+    )?;
+    run.finish(scenes, family, config.rescore, config.rescore_scenes)
+}
+
+/// A fit that runs in stages in memory: start it, [`advance`](Self::advance) it some
+/// generations, look at where it stands ([`finish`](Self::finish) on a clone), advance it
+/// further. Advancing to `generations` and finishing gives exactly the outcome of [`fit`] with
+/// that many generations (tested), so a caller can stop spending on a run that is losing a
+/// race (the diagnosis's `race`) without changing the runs it keeps.
+///
+/// ```
+/// # use fit::{BackboneFamily, FitConfig, PausedFit};
+/// # fn demo(scenes: &[scene::Scene], family: &BackboneFamily) -> Result<(), fit::FitError> {
+/// let config = FitConfig { generations: 10, rescore: 3, ..FitConfig::default() };
+/// let mut run = PausedFit::start(scenes, family, &config)?;
+/// run.advance(scenes, family, 5)?;
+/// let halfway = run.clone().finish(scenes, family, 1, 16)?; // a cheap look
+/// run.advance(scenes, family, 10)?;
+/// let outcome = run.finish(scenes, family, config.rescore, config.rescore_scenes)?;
+/// # Ok(()) }
+/// ```
+#[derive(Clone, Debug)]
+pub struct PausedFit {
+    es: CmaEs,
+    outcome: FitOutcome,
+    config: FitConfig,
+    scenes: usize,
+}
+
+impl PausedFit {
+    /// A fresh run of `config` (its `generations` and rescoring are ignored: the stages say
+    /// how far to go and how to finish). Nothing is evaluated yet.
+    pub fn start<F: Family>(
+        scenes: &[Scene],
+        family: &F,
+        config: &FitConfig,
+    ) -> Result<Self, FitError> {
+        if scenes.is_empty() {
+            return Err(FitError::NoScenes);
+        }
+        let params = family.parameters();
+        let mut cfg = params.cmaes_config(&family.x0(), config.sigma0, config.seed)?;
+        cfg.population = Some(config.population);
+        let outcome = FitOutcome {
+            family: family.name(),
+            names: params.params().iter().map(|p| p.name.clone()).collect(),
+            best: family.x0(),
+            best_loss: f64::INFINITY,
+            history: Vec::new(),
+            evaluations: 0,
+            resumed_from: None,
+            generation_best: Vec::new(),
+            rescored: None,
+        };
+        Ok(PausedFit {
+            es: CmaEs::new(cfg)?,
+            outcome,
+            config: config.clone(),
+            scenes: scenes.len(),
+        })
     }
-    if config.rescore > 0 && outcome.rescored.is_none() {
-        rescore(scenes, family, params, &es, config, &mut outcome)?;
+
+    /// Generations run so far.
+    pub fn generations(&self) -> usize {
+        self.outcome.history.len()
     }
-    Ok(outcome)
+
+    /// Runs generations until `generations` have run (none if that many already have).
+    pub fn advance<F: Family>(
+        &mut self,
+        scenes: &[Scene],
+        family: &F,
+        generations: usize,
+    ) -> Result<(), FitError> {
+        self.advance_inner(scenes, family, generations, None, &mut |_| {})
+    }
+
+    fn check_scenes<F: Family>(&self, scenes: &[Scene], family: &F) -> Result<(), FitError> {
+        if scenes.len() != self.scenes || family.name() != self.outcome.family {
+            return Err(FitError::Config(format!(
+                "a paused fit of {} on {} scenes was continued with {} on {} scenes",
+                self.outcome.family,
+                self.scenes,
+                family.name(),
+                scenes.len()
+            )));
+        }
+        Ok(())
+    }
+
+    fn advance_inner<F: Family>(
+        &mut self,
+        scenes: &[Scene],
+        family: &F,
+        generations: usize,
+        checkpoint: Option<&Path>,
+        on_generation: &mut dyn FnMut(&Generation),
+    ) -> Result<(), FitError> {
+        self.check_scenes(scenes, family)?;
+        let params = family.parameters();
+        let config = &self.config;
+        let (es, outcome) = (&mut self.es, &mut self.outcome);
+        let samples = config.samples.min(scenes.len()).max(1);
+        while outcome.history.len() < generations {
+            let t0 = Instant::now();
+            let index = outcome.history.len();
+            let mut rng = ChaCha8Rng::seed_from_u64(
+                config.seed ^ (index as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15),
+            );
+            let mut picked = sample(&mut rng, scenes.len(), samples).into_vec();
+            picked.sort_unstable();
+            let candidates = es.ask();
+            let reals = candidates
+                .iter()
+                .map(|u| params.to_real(u))
+                .collect::<Result<Vec<_>, _>>()?;
+            let losses = losses_on(family, &reals, scenes, &picked);
+            let fitness: Vec<f64> = losses
+                .chunks(samples)
+                .map(|l| l.iter().sum::<f64>() / samples as f64)
+                .collect();
+            let diverged = losses
+                .chunks(samples)
+                .filter(|l| l.contains(&PENALTY))
+                .count();
+            es.tell(&candidates, &fitness)?;
+            let (best_c, best_loss) =
+                fitness
+                    .iter()
+                    .enumerate()
+                    .fold(
+                        (0, f64::INFINITY),
+                        |b, (i, f)| if *f < b.1 { (i, *f) } else { b },
+                    );
+            if best_loss < outcome.best_loss {
+                outcome.best_loss = best_loss;
+                outcome.best = reals[best_c].clone();
+            }
+            outcome.generation_best.push(reals[best_c].clone());
+            let mut sorted = fitness.clone();
+            sorted.sort_by(f64::total_cmp);
+            outcome.evaluations += fitness.len() as u64;
+            let generation = Generation {
+                index,
+                best_loss,
+                median_loss: sorted[sorted.len() / 2],
+                best_so_far: outcome.best_loss,
+                diverged,
+                wall_s: t0.elapsed().as_secs_f64(),
+            };
+            outcome.history.push(generation.clone());
+            if let Some(path) = checkpoint {
+                let ck = Checkpoint {
+                    family: family.name(),
+                    config: config.clone(),
+                    scenes: scenes.len(),
+                    substep: scenes.first().map(|s| s.sim_config().substep),
+                    es: es.clone(),
+                    outcome: outcome.clone(),
+                };
+                let text = serde_json::to_string(&ck).map_err(|e| checkpoint_error(path, e))?;
+                dataset::write_atomic(path, text.as_bytes())
+                    .map_err(|e| checkpoint_error(path, e))?;
+            }
+            on_generation(&generation);
+        }
+        Ok(())
+    }
+
+    /// The outcome so far, with the final selection [`FitConfig::rescore`] describes made
+    /// with `rescore` and `rescore_scenes` (`rescore = 0`: the best candidate by its own
+    /// generation's sample).
+    pub fn finish<F: Family>(
+        mut self,
+        scenes: &[Scene],
+        family: &F,
+        rescore: usize,
+        rescore_scenes: usize,
+    ) -> Result<FitOutcome, FitError> {
+        self.check_scenes(scenes, family)?;
+        let config = FitConfig {
+            rescore,
+            rescore_scenes,
+            ..self.config.clone()
+        };
+        if rescore > 0 && self.outcome.rescored.is_none() {
+            rescore_run(
+                scenes,
+                family,
+                family.parameters(),
+                &self.es,
+                &config,
+                &mut self.outcome,
+            )?;
+        }
+        Ok(self.outcome)
+    }
 }
 
 /// Loss of every candidate on every picked scene, candidate-major, computed in parallel and
@@ -324,7 +452,7 @@ fn losses_on<F: Family>(
 /// Scores the optimiser's mean and the best candidates of the `config.rescore` best
 /// generations on every scene (or a seeded subset of `config.rescore_scenes`) and keeps the
 /// best (ties: the earlier contender, so the mean wins an exact tie).
-fn rescore<F: Family>(
+fn rescore_run<F: Family>(
     scenes: &[Scene],
     family: &F,
     params: &cmaes::Parameters,

@@ -2,7 +2,7 @@
 //! uninterrupted one.
 
 use dataset::{DatasetMeta, Episode, Manipulation};
-use fit::{BackboneFamily, Family, FitConfig, fit, scene_loss};
+use fit::{BackboneFamily, Family, FitConfig, PausedFit, fit, scene_loss};
 use glam::Vec3;
 use scene::{Protocol, Scene, SceneConfig};
 use springs::{Actions, Backbone, SimConfig, SpringParams, State};
@@ -137,6 +137,45 @@ fn resumed_fit_equals_uninterrupted() {
     }
     assert_eq!(resumed, whole);
     std::fs::remove_file(&ck).ok();
+}
+
+#[test]
+fn staged_fit_equals_uninterrupted_and_a_look_halfway_changes_nothing() {
+    let (_, scenes) = synthetic_scenes(&truth(), 3);
+    let family = BackboneFamily::new(springs::REFERENCE_BOUNDS).unwrap();
+    let config = FitConfig {
+        population: 6,
+        generations: 4,
+        samples: 2,
+        sigma0: 0.2,
+        seed: 5,
+        rescore: 2,
+        rescore_scenes: 2,
+    };
+    let mut whole = fit(&scenes, &family, &config, None, &mut |_| {}).unwrap();
+
+    let mut run = PausedFit::start(&scenes, &family, &config).unwrap();
+    run.advance(&scenes, &family, 2).unwrap();
+    assert_eq!(run.generations(), 2);
+    // A look at the halfway state (finished on a clone) costs the run nothing.
+    let look = run.clone().finish(&scenes, &family, 1, 1).unwrap();
+    assert_eq!(look.history.len(), 2);
+    assert_eq!(look.rescored.as_ref().map(|r| r.scenes), Some(1));
+    assert_eq!(look.rescored.as_ref().map(|r| r.contenders.len()), Some(2));
+    run.advance(&scenes, &family, 4).unwrap();
+    run.advance(&scenes, &family, 3).unwrap(); // already past: nothing runs
+    let mut staged = run
+        .finish(&scenes, &family, config.rescore, config.rescore_scenes)
+        .unwrap();
+    for g in staged.history.iter_mut().chain(whole.history.iter_mut()) {
+        g.wall_s = 0.0;
+    }
+    assert_eq!(staged, whole);
+
+    // Continuing with other scenes is refused.
+    let (_, fewer) = synthetic_scenes(&truth(), 2);
+    let mut run = PausedFit::start(&scenes, &family, &config).unwrap();
+    assert!(run.advance(&fewer, &family, 1).is_err());
 }
 
 #[test]

@@ -62,7 +62,27 @@ pub struct DiagnoseConfig {
     /// report written before it existed): no field.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub field: Option<Vec<f32>>,
+    /// Race the library candidates' refits (successive halving): `k > 0` runs every
+    /// candidate's refit for half the generations, ranks them by training loss on
+    /// [`RACE_SCENES`] training scenes, and spends the second half (and the final rescoring)
+    /// only on the best `k`; the others keep their halfway state and are marked
+    /// [`RankedEffect::raced_out`]. The control and the probe always get the whole budget.
+    /// `0` (the default, and every report written before it existed): no race.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub race: usize,
 }
+
+fn is_zero(v: &usize) -> bool {
+    *v == 0
+}
+
+fn is_false(v: &bool) -> bool {
+    !*v
+}
+
+/// Training scenes on which a race ranks the candidates halfway (all of them when there are
+/// fewer): twice a generation's sample, one scored contender per candidate besides its mean.
+pub const RACE_SCENES: usize = 16;
 
 impl Default for DiagnoseConfig {
     fn default() -> Self {
@@ -81,6 +101,7 @@ impl Default for DiagnoseConfig {
             rescore: 3,
             rescore_scenes: 64,
             field: None,
+            race: 0,
         }
     }
 }
@@ -140,6 +161,12 @@ pub struct RankedEffect {
     /// [`HowFar::before`]). Empty in reports written before the field existed (2026-11-24).
     #[serde(default)]
     pub heldout_mde_per_episode_cm: Vec<f64>,
+    /// The refit lost the race ([`DiagnoseConfig::race`]): it ran half the generations, and its
+    /// parameters are the better of its optimiser's mean and its best generation's best on
+    /// [`RACE_SCENES`] training scenes. Held-out scoring and the verdict rule treat it like
+    /// any other candidate.
+    #[serde(default, skip_serializing_if = "is_false")]
+    pub raced_out: bool,
 }
 
 /// Significant candidates that held-out error could not separate, and which one the
@@ -244,6 +271,7 @@ struct Model {
     real: Vec<f64>,
     train_loss: f64,
     wall_s: f64,
+    raced_out: bool,
 }
 
 fn predict(family: &CandidateFamily, real: &[f64], scene: &Scene) -> Option<Vec<Vec<Vec3>>> {
@@ -376,6 +404,81 @@ fn signature_cosine(
     }
 }
 
+/// The race of [`DiagnoseConfig::race`]: the refits of the library candidates among `all`
+/// (the probe is not raced), index-aligned with `all`; `None` where the candidate is not raced
+/// (the probe, or every candidate when there is no race or nothing to cut).
+fn race(
+    train: &[Scene],
+    all: &[Candidate],
+    config: &DiagnoseConfig,
+    fit_cfg: &FitConfig,
+    family_of: &dyn Fn(Option<Candidate>) -> Result<CandidateFamily, GapError>,
+    progress: &mut dyn FnMut(&str),
+) -> Result<Vec<Option<Model>>, GapError> {
+    let racers: Vec<usize> = (0..all.len())
+        .filter(|&k| all[k] != Candidate::ExternalField)
+        .collect();
+    let mut out: Vec<Option<Model>> = all.iter().map(|_| None).collect();
+    if config.race == 0 || config.race >= racers.len() {
+        return Ok(out);
+    }
+    let half = config.generations.div_ceil(2);
+    let mut runs = Vec::new();
+    for &k in &racers {
+        let t = Instant::now();
+        let family = family_of(Some(all[k]))?;
+        let mut run = fit::PausedFit::start(train, &family, fit_cfg)?;
+        run.advance(train, &family, half)?;
+        let look = run.clone().finish(train, &family, 1, RACE_SCENES)?;
+        runs.push((k, family, run, look, t.elapsed().as_secs_f64()));
+    }
+    let mut order: Vec<usize> = (0..runs.len()).collect();
+    order.sort_by(|&a, &b| {
+        runs[a]
+            .3
+            .best_loss
+            .total_cmp(&runs[b].3.best_loss)
+            .then(a.cmp(&b))
+    });
+    let kept = &order[..config.race];
+    progress(&format!(
+        "race: {} candidates after {half} of {} generations, by training loss on {} scenes: {}; kept {}",
+        runs.len(),
+        config.generations,
+        RACE_SCENES.min(train.len()),
+        order
+            .iter()
+            .map(|&i| format!("{} {:.3e}", all[runs[i].0].name(), runs[i].3.best_loss))
+            .collect::<Vec<_>>()
+            .join(", "),
+        config.race
+    ));
+    for (i, (k, family, mut run, look, wall)) in runs.into_iter().enumerate() {
+        let model = if kept.contains(&i) {
+            let t = Instant::now();
+            run.advance(train, &family, config.generations)?;
+            let done = run.finish(train, &family, config.rescore, config.rescore_scenes)?;
+            Model {
+                family,
+                real: done.best,
+                train_loss: done.best_loss,
+                wall_s: wall + t.elapsed().as_secs_f64(),
+                raced_out: false,
+            }
+        } else {
+            Model {
+                family,
+                real: look.best,
+                train_loss: look.best_loss,
+                wall_s: wall,
+                raced_out: true,
+            }
+        };
+        out[k] = Some(model);
+    }
+    Ok(out)
+}
+
 /// The training data's mean tracked position and the reference shape's frame.
 pub fn material_frame(train: &[Scene]) -> Result<MaterialFrame, GapError> {
     let first = train.first().ok_or(GapError::NoScenes("training"))?;
@@ -453,16 +556,22 @@ pub fn diagnose(
         rescore_scenes: config.rescore_scenes,
     };
     check_distinct(&config.base, None)?;
+    let family_of = |cand: Option<Candidate>| -> Result<CandidateFamily, GapError> {
+        Ok(
+            CandidateFamily::with_base(*base, &config.base, cand, frame.clone())?
+                .with_field(field.clone()),
+        )
+    };
     let refit = |cand: Option<Candidate>| -> Result<Model, GapError> {
         let t = Instant::now();
-        let family = CandidateFamily::with_base(*base, &config.base, cand, frame.clone())?
-            .with_field(field.clone());
+        let family = family_of(cand)?;
         let out = fit::fit(train, &family, &fit_cfg, None, &mut |_| {})?;
         Ok(Model {
             family,
             real: out.best,
             train_loss: out.best_loss,
             wall_s: t.elapsed().as_secs_f64(),
+            raced_out: false,
         })
     };
     // The fitted backbone as given.
@@ -515,10 +624,14 @@ pub fn diagnose(
     if config.probe {
         all.push(Candidate::ExternalField);
     }
+    let mut raced = race(train, &all, config, &fit_cfg, &family_of, progress)?;
     let mut entries = Vec::new();
     let mut models = Vec::new();
     for (k, cand) in all.iter().enumerate() {
-        let model = refit(Some(*cand))?;
+        let model = match raced[k].take() {
+            Some(m) => m,
+            None => refit(Some(*cand))?,
+        };
         let h = heldout(&model.family, &model.real, val, Some(&control_h), false)?;
         let cmp = paired_shrinkage(
             &control_h.per_episode_mde_cm,
@@ -552,10 +665,11 @@ pub fn diagnose(
             train_loss_m2: model.train_loss,
             refit_wall_s: model.wall_s,
             heldout_mde_per_episode_cm: h.per_episode_mde_cm.clone(),
+            raced_out: model.raced_out,
         };
         entry.significant = counts(&entry, &config.rule);
         progress(&format!(
-            "{:<24} held-out MDE {:.3} -> {:.3} cm, shrinkage {:+.3} [{:+.3}, {:+.3}], vs effect off {:+.3} [{:+.3}, {:+.3}], signature cos {:+.2} ({:.1} s)",
+            "{:<24} held-out MDE {:.3} -> {:.3} cm, shrinkage {:+.3} [{:+.3}, {:+.3}], vs effect off {:+.3} [{:+.3}, {:+.3}], signature cos {:+.2} ({:.1} s{})",
             entry.effect,
             entry.heldout_mde_before_cm,
             entry.heldout_mde_after_cm,
@@ -566,7 +680,8 @@ pub fn diagnose(
             itself.ci95[0],
             itself.ci95[1],
             entry.signature_cosine,
-            entry.refit_wall_s
+            entry.refit_wall_s,
+            if entry.raced_out { ", raced out" } else { "" }
         ));
         entries.push((entry, h));
         models.push(model);

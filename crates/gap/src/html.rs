@@ -355,6 +355,15 @@ pub fn render_html(d: &Diagnosis, title: &str) -> String {
         );
     }
     body += "<h2>Which: candidates ranked</h2>";
+    if d.config.race > 0 {
+        let _ = write!(
+            body,
+            "<p>Refits raced: every candidate ran half of its {} generations; the best {} by \
+             training loss ran the rest. The others (marked &ldquo;raced out&rdquo;) are scored \
+             at their halfway parameters.</p>",
+            d.config.generations, d.config.race
+        );
+    }
     body += &ranking_chart(d);
     body += &table(
         &[
@@ -369,7 +378,11 @@ pub fn render_html(d: &Diagnosis, title: &str) -> String {
         ],
         d.ranking.iter().chain(d.probe.iter()).map(|r| {
             vec![
-                r.effect.clone(),
+                if r.raced_out {
+                    format!("{} (raced out)", r.effect)
+                } else {
+                    r.effect.clone()
+                },
                 format!("{:.3}", r.heldout_mde_before_cm),
                 format!("{:.3}", r.heldout_mde_after_cm),
                 format!("{:+.3}", r.shrinkage),

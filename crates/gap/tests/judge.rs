@@ -31,6 +31,7 @@ fn refit(
         train_loss_m2: 0.0,
         refit_wall_s: 0.0,
         heldout_mde_per_episode_cm: per,
+        raced_out: false,
     }
 }
 

@@ -127,3 +127,67 @@ fn empty_splits_are_errors() {
     let r = gap::diagnose(&[], &val, &base, &DiagnoseConfig::default(), &mut |_| {});
     assert!(matches!(r, Err(gap::GapError::NoScenes(_))));
 }
+
+#[test]
+fn a_race_keeps_the_best_refits_whole_and_marks_the_others() {
+    let train = scenes(dataset::Split::Train);
+    let val = scenes(dataset::Split::Val);
+    let whole = DiagnoseConfig {
+        population: 3,
+        generations: 3,
+        samples: 1,
+        resamples: 50,
+        candidates: vec![
+            Candidate::Drag,
+            Candidate::ActuationDelay,
+            Candidate::Bending,
+        ],
+        signature_scenes: 1,
+        rescore: 1,
+        ..DiagnoseConfig::default()
+    };
+    let raced = DiagnoseConfig {
+        race: 1,
+        ..whole.clone()
+    };
+    let base = backbone();
+    let a = gap::diagnose(&train, &val, &base, &whole, &mut |_| {}).unwrap();
+    let mut lines = Vec::new();
+    let b = gap::diagnose(&train, &val, &base, &raced, &mut |l| {
+        lines.push(l.to_string())
+    })
+    .unwrap();
+    assert!(
+        lines.iter().any(|l| l.starts_with("race: 3 candidates")),
+        "{lines:?}"
+    );
+    // The control and the probe are never raced.
+    assert_eq!(a.control.fitted, b.control.fitted);
+    assert_eq!(
+        a.probe.as_ref().unwrap().fitted,
+        b.probe.as_ref().unwrap().fitted
+    );
+    assert!(!b.probe.as_ref().unwrap().raced_out);
+    let out: Vec<_> = b.ranking.iter().filter(|r| r.raced_out).collect();
+    assert_eq!(out.len(), 2, "one of three kept");
+    let kept = b.ranking.iter().find(|r| !r.raced_out).unwrap();
+    // The kept refit ran its whole budget: exactly the unraced diagnosis's refit.
+    let same = a.ranking.iter().find(|r| r.effect == kept.effect).unwrap();
+    assert_eq!(same.fitted, kept.fitted);
+    assert_eq!(
+        same.heldout_mde_per_episode_cm,
+        kept.heldout_mde_per_episode_cm
+    );
+    // The report says which refits lost, and reads back.
+    let v = serde_json::to_value(&b).unwrap();
+    assert_eq!(v["config"]["race"], 1);
+    let back: gap::Diagnosis = serde_json::from_value(v).unwrap();
+    assert_eq!(back.ranking, b.ranking);
+    // The page says so too.
+    assert!(gap::render_html(&b, "t").contains("(raced out)"));
+    assert!(!gap::render_html(&a, "t").contains("raced"));
+    // An unraced report keeps its old form.
+    let v = serde_json::to_value(&a).unwrap();
+    assert!(v["config"].get("race").is_none());
+    assert!(v["ranking"][0].get("raced_out").is_none());
+}
