@@ -701,6 +701,16 @@ pub fn diagnose(
     });
     let library: Vec<RankedEffect> = entries.iter().map(|(e, _)| e.clone()).collect();
     let judged = judge(&library, probe.as_ref().map(|(e, _, _)| e), config)?;
+    if library
+        .iter()
+        .any(|e| e.raced_out && e.effect == judged.verdict)
+    {
+        progress(&format!(
+            "note: the verdict's effect, {}, lost the race: its parameters are from half the \
+             generations (diagnose without --race to finish its refit)",
+            judged.verdict
+        ));
+    }
     // How far: the verdict's effect, or the top-ranked one for reference.
     let shown = entries
         .iter()

@@ -16,6 +16,9 @@
 //!   its effect off in its own refit also loses significantly (the effect, not the refit of
 //!   the shared parameters, carries the gain); significant candidates that held-out error
 //!   cannot separate go to the one whose signature matches the residual best ([`break_tie`]).
+//! - With [`DiagnoseConfig::race`] the candidates' refits race: half the generations for
+//!   every candidate, the rest only for the best few by training loss ([`RACE_SCENES`]);
+//!   the control and the probe always run whole.
 //! - A model may already hold some library effects ([`BaseEffect`], e.g. the verdict of an
 //!   earlier diagnosis): they are refitted with the backbone in the control and in every
 //!   candidate refit, so the diagnosis ranks the remaining candidates against that model.
@@ -54,8 +57,8 @@ mod stats;
 pub use base::{BaseEffect, backbone_options};
 pub use candidates::{Candidate, CandidateFamily, MaterialFrame, principal_axis};
 pub use diagnose::{
-    ControlFit, DiagnoseConfig, Diagnosis, Heldout, HowFar, RankedEffect, TieBreak, diagnose,
-    evaluate, material_frame,
+    ControlFit, DiagnoseConfig, Diagnosis, Heldout, HowFar, RACE_SCENES, RankedEffect, TieBreak,
+    diagnose, evaluate, material_frame,
 };
 pub use html::render_html;
 pub use judge::{Judgement, judge};
