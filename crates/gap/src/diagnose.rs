@@ -80,8 +80,10 @@ fn is_false(v: &bool) -> bool {
     !*v
 }
 
-/// Training scenes on which a race ranks the candidates halfway (all of them when there are
-/// fewer): twice a generation's sample, one scored contender per candidate besides its mean.
+/// Training scenes on which a race compares the candidates halfway (all of them on smaller
+/// datasets), the same for every candidate: twice a default generation's sample, so that a
+/// look at two contenders (the optimiser's mean and the best generation's best) costs half a
+/// generation.
 pub const RACE_SCENES: usize = 16;
 
 impl Default for DiagnoseConfig {
