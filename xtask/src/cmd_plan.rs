@@ -402,10 +402,9 @@ fn scorers(
 }
 
 /// The run's backbone for `task`, with the library effects its `backbone.json` carries (from
-/// `diagnose --write-run`). Effects placed along the object (stiffness heterogeneity, mass
-/// distribution) take their material coordinate from the task's start shape.
-/// The run's model on the task's rope, under the run's substep rule (its damping was fitted
-/// for that integrator).
+/// `diagnose --write-run`), under the run's substep rule (its damping was fitted for that
+/// integrator). Effects placed along the object (stiffness heterogeneity, mass distribution)
+/// take their material coordinate from the task's start shape.
 fn task_backbone(task: &Task, backbone: &BackboneFile) -> anyhow::Result<springs::Backbone> {
     let options = if backbone.effects.is_empty() {
         springs::BackboneOptions::default()

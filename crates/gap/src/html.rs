@@ -355,7 +355,8 @@ pub fn render_html(d: &Diagnosis, title: &str) -> String {
         );
     }
     body += "<h2>Which: candidates ranked</h2>";
-    if d.config.race > 0 {
+    // A race asked for but with nothing to cut (no more candidates than it keeps) ran none.
+    if d.ranking.iter().any(|r| r.raced_out) {
         let _ = write!(
             body,
             "<p>Refits raced: every candidate ran half of its {} generations; the best {} by \
