@@ -298,6 +298,10 @@ pub struct BenchCase {
     /// `(before − after) / gap`: share of the effect-attributable gap recovered (None when the
     /// gap is not positive or nothing was refitted for the true effect).
     pub recovered: Option<f64>,
+    /// The true effect's refit lost the race (`--race`), so `mde_after_cm`, `shrinkage` and
+    /// `recovered` are its halfway refit's. Absent when it did not.
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub true_effect_raced_out: bool,
     /// Wall time of the diagnosis, s.
     pub diagnose_wall_s: f64,
     /// The trained network's comparison (`--network-minutes`), when this case got one.
@@ -845,6 +849,7 @@ pub fn run_bench(args: &DiagnoseBenchArgs) -> anyhow::Result<BenchSummary> {
                 shrinkage: truth_entry.map(|r| r.shrinkage),
                 ci95: truth_entry.map(|r| r.ci95),
                 recovered: after.filter(|_| gap > 0.0).map(|a| (before - a) / gap),
+                true_effect_raced_out: truth_entry.is_some_and(|r| r.raced_out),
                 diagnose_wall_s: wall,
                 network: d.learnable.clone(),
                 tie_break: d.tie_break.clone(),
@@ -874,10 +879,15 @@ pub fn run_bench(args: &DiagnoseBenchArgs) -> anyhow::Result<BenchSummary> {
                 gap,
                 match (after, case.shrinkage) {
                     (Some(a), Some(s)) => format!(
-                        "{a:.3} cm ({:+.1}%, recovered {})",
+                        "{a:.3} cm ({:+.1}%, recovered {}{})",
                         100.0 * s,
                         case.recovered
-                            .map_or("-".into(), |r| format!("{:.0}%", 100.0 * r))
+                            .map_or("-".into(), |r| format!("{:.0}%", 100.0 * r)),
+                        if case.true_effect_raced_out {
+                            ", raced out"
+                        } else {
+                            ""
+                        }
                     ),
                     _ => "-".into(),
                 },
@@ -1100,6 +1110,57 @@ mod tests {
         .unwrap_err()
         .to_string();
         assert!(e.contains("--episodes-per-recording"), "{e}");
+    }
+
+    #[test]
+    fn a_raced_bench_races_the_cases_not_the_base_search_and_flags_raced_out_truths() {
+        let dir = std::env::temp_dir().join(format!("pgrd-bench-race-{}", std::process::id()));
+        let work = dir.display().to_string();
+        let args = bench_args(&[
+            "--objects",
+            "rope",
+            "--cases",
+            "drag,bending",
+            "--episodes",
+            "4",
+            "--val",
+            "2",
+            "--tracked",
+            "12",
+            "--generations",
+            "2",
+            "--fit-generations",
+            "2",
+            "--samples",
+            "2",
+            "--scales",
+            "1",
+            "--race",
+            "1",
+            "--work",
+            &work,
+        ]);
+        let summary = run_bench(&args).unwrap();
+        let read = |report: &str| -> Diagnosis {
+            let text = std::fs::read_to_string(dir.join(report).join("report.json")).unwrap();
+            serde_json::from_str(&text).unwrap()
+        };
+        let base = read("rope-none/report-base0");
+        assert_eq!(base.config.race, 0, "the base search is not raced");
+        assert_eq!(summary.cases.len(), 2);
+        for case in &summary.cases {
+            let d = read(&format!("rope-{}-x1/report", case.truth));
+            assert_eq!(d.config.race, 1);
+            let raced = d.ranking.iter().filter(|r| r.raced_out).count();
+            assert_eq!(raced, d.ranking.len() - 1, "all but one raced out");
+            let truth = d.ranking.iter().find(|r| r.effect == case.truth).unwrap();
+            assert_eq!(
+                case.true_effect_raced_out, truth.raced_out,
+                "{}",
+                case.truth
+            );
+        }
+        std::fs::remove_dir_all(&dir).ok();
     }
 
     #[test]
