@@ -30,8 +30,8 @@ pub struct DiagnoseArgs {
     #[arg(long)]
     pub run: PathBuf,
     /// Report directory (created): report.json and report.html.
-    #[arg(long)]
-    pub out: PathBuf,
+    #[arg(long, required_unless_present = "estimate")]
+    pub out: Option<PathBuf>,
     /// CMA-ES candidates per generation of each refit.
     #[arg(long, default_value_t = 8)]
     pub population: usize,
@@ -60,9 +60,21 @@ pub struct DiagnoseArgs {
     /// Race the library candidates' refits (0: off): every candidate gets half the
     /// generations, and only the best N by training loss get the rest and the rescoring; the
     /// control and the probe always get the whole budget. Faster, at some risk to the verdict
-    /// (`docs/gap.md`, "Racing the refits").
-    #[arg(long, default_value_t = 0)]
-    pub race: usize,
+    /// (`docs/gap.md`, "Racing the refits"). Default: off, unless `--budget-min` chooses it.
+    #[arg(long)]
+    pub race: Option<usize>,
+    /// Time budget, minutes on a 2-core laptop (0: none). When neither `--race` nor
+    /// `--substep` is given and the diagnosis's estimated time (`gap::effort`: simulator work
+    /// counted before the run, no clock, so the choice is the same on every run) is above it,
+    /// the refits race (`--race 3`) and, if that is not enough, also take the spectral
+    /// substep; the command says so and `report.json` records it (`budget`). `docs/gap.md`,
+    /// "Time budget".
+    #[arg(long, default_value_t = 10.0)]
+    pub budget_min: f64,
+    /// Print the estimated time of the diagnosis as given and with the speed options the
+    /// budget can choose, and stop.
+    #[arg(long)]
+    pub estimate: bool,
     /// Window of each episode.
     #[arg(long, value_enum, default_value_t = ProtocolArg::Paper)]
     pub protocol: ProtocolArg,
@@ -147,7 +159,7 @@ fn config_from(args: &DiagnoseArgs, run_effects: &[BaseEffect]) -> anyhow::Resul
         resamples: args.resamples,
         rescore: args.rescore,
         rescore_scenes: args.rescore_scenes,
-        race: args.race,
+        race: args.race.unwrap_or(0),
         candidates,
         base: match &args.with {
             Some(list) => BaseEffect::parse_list(list)?,
@@ -249,15 +261,149 @@ fn check_write_run(dir: &Path, run: &Path) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Runs `diagnose`.
-pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
-    let t0 = Instant::now();
+/// The race a budget chooses (the bench's measured setting, `docs/gap.md`).
+const BUDGET_RACE: usize = 3;
+
+/// One set of speed options a diagnosis can run with, and its estimated effort.
+struct Level {
+    race: usize,
+    substep: SubstepArg,
+    effort: gap::Effort,
+}
+
+impl Level {
+    fn options(&self, run_substep: SubstepArg) -> String {
+        let mut out = Vec::new();
+        if self.race > 0 {
+            out.push(format!("--race {}", self.race));
+        }
+        if self.substep != run_substep {
+            out.push(format!("--substep {}", self.substep.name()));
+        }
+        out.join(" ")
+    }
+}
+
+/// The options as given first, then (when neither `--race` nor `--substep` was given) the
+/// race, then the race with the spectral substep: each faster than the one before.
+fn effort_levels(
+    args: &DiagnoseArgs,
+    run_substep: SubstepArg,
+    train: &[Scene],
+    val: &[Scene],
+    params: &springs::SpringParams,
+    config: &DiagnoseConfig,
+) -> anyhow::Result<Vec<Level>> {
+    let mut options = vec![(config.race, args.substep.unwrap_or(run_substep))];
+    if args.race.is_none() && args.substep.is_none() {
+        options.push((BUDGET_RACE, run_substep));
+        if run_substep == SubstepArg::Auto {
+            options.push((BUDGET_RACE, SubstepArg::Spectral));
+        }
+    }
+    options
+        .into_iter()
+        .map(|(race, substep)| {
+            let cfg = DiagnoseConfig {
+                race,
+                ..config.clone()
+            };
+            Ok(Level {
+                race,
+                substep,
+                effort: gap::effort(train, val, params, &cfg, substep.substep())?,
+            })
+        })
+        .collect()
+}
+
+/// The first level whose estimate is within `budget_min` (when none is, the cheapest, the
+/// first of equals: on small settings a race can cost more than it saves, and the spectral
+/// substep nothing where both rules sit at the accuracy cap), with the record of the choice;
+/// `None` without a budget or a choice to make.
+fn choose_level(budget_min: f64, levels: &[Level]) -> Option<(usize, gap::BudgetChoice)> {
+    // NaN counts as no budget.
+    if budget_min.is_nan() || budget_min <= 0.0 || levels.len() < 2 {
+        return None;
+    }
+    let budget_s = 60.0 * budget_min;
+    let cost = |k: usize| levels[k].effort.estimated_s();
+    let k = (0..levels.len())
+        .find(|&k| cost(k) <= budget_s)
+        .unwrap_or_else(|| (1..levels.len()).fold(0, |b, k| if cost(k) < cost(b) { k } else { b }));
+    Some((
+        k,
+        gap::BudgetChoice {
+            budget_s,
+            full_estimated_s: levels[0].effort.estimated_s(),
+            estimated_s: levels[k].effort.estimated_s(),
+            options: levels[k].options(levels[0].substep),
+        },
+    ))
+}
+
+/// `diagnose --estimate`: the estimated time of each level, nothing run.
+pub fn estimate(args: &DiagnoseArgs) -> anyhow::Result<()> {
     let data = Dataset::open(&args.data)?;
     let backbone = read_backbone(&args.run)?;
     let protocol: Protocol = args.protocol.into();
     let substep = args.substep.unwrap_or(backbone.substep);
     let train = scenes(&data, Split::Train, protocol, substep)?;
     let val = scenes(&data, Split::Val, protocol, substep)?;
+    let config = config_from(args, &backbone.effects)?;
+    let levels = effort_levels(
+        args,
+        backbone.substep,
+        &train,
+        &val,
+        &backbone.params,
+        &config,
+    )?;
+    let chosen = choose_level(args.budget_min, &levels).map(|(k, _)| k);
+    println!(
+        "estimated diagnosis time of {} on a 2-core laptop ({} training, {} held-out episodes):",
+        data.meta.object,
+        train.len(),
+        val.len()
+    );
+    for (k, l) in levels.iter().enumerate() {
+        let options = l.options(levels[0].substep);
+        println!(
+            "  {:>6.0} s  {}: {} refit and {} held-out rollouts, {:.0} substeps per step, {:.0} springs, {:.0} particles{}",
+            l.effort.estimated_s(),
+            if options.is_empty() {
+                "as given"
+            } else {
+                &options
+            },
+            l.effort.refit_rollouts,
+            l.effort.heldout_rollouts,
+            l.effort.substeps,
+            l.effort.springs,
+            l.effort.particles,
+            if chosen == Some(k) {
+                format!(" <- chosen by the {} min budget", args.budget_min)
+            } else {
+                String::new()
+            }
+        );
+    }
+    Ok(())
+}
+
+/// Runs `diagnose`.
+pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
+    let out = args
+        .out
+        .as_deref()
+        .context("--out names the report directory")?;
+    let t0 = Instant::now();
+    let data = Dataset::open(&args.data)?;
+    let backbone = read_backbone(&args.run)?;
+    let protocol: Protocol = args.protocol.into();
+    let mut substep = args.substep.unwrap_or(backbone.substep);
+    let mut train = scenes(&data, Split::Train, protocol, substep)?;
+    let mut val = scenes(&data, Split::Val, protocol, substep)?;
     if let Some(dir) = &args.write_run {
         check_write_run(dir, &args.run)?;
     }
@@ -266,6 +412,39 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
     // global stiffness it multiplies.
     config.field = backbone.refined.as_ref().map(|r| r.log_factor.clone());
     let quiet = args.quiet;
+    let levels = effort_levels(
+        args,
+        backbone.substep,
+        &train,
+        &val,
+        &backbone.params,
+        &config,
+    )?;
+    let budget = choose_level(args.budget_min, &levels);
+    if let Some((k, choice)) = &budget {
+        let chosen = &levels[*k];
+        if !quiet {
+            println!(
+                "  budget {:.0} s: estimated {:.0} s as given{}",
+                choice.budget_s,
+                choice.full_estimated_s,
+                if choice.options.is_empty() {
+                    String::new()
+                } else {
+                    format!(
+                        ", {:.0} s with {} (chosen; --budget-min 0 for the whole diagnosis)",
+                        choice.estimated_s, choice.options
+                    )
+                }
+            );
+        }
+        config.race = chosen.race;
+        if chosen.substep != substep {
+            substep = chosen.substep;
+            train = scenes(&data, Split::Train, protocol, substep)?;
+            val = scenes(&data, Split::Val, protocol, substep)?;
+        }
+    }
     if !quiet {
         println!("  substep rule: {}", substep.name());
     }
@@ -275,6 +454,7 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
         }
     })?;
     let mut d = d;
+    d.budget = budget.map(|(_, choice)| choice);
     if !args.no_network
         && let Some(net) = read_residual(&args.run)?
     {
@@ -286,7 +466,7 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
         }
     }
     let title = format!("{} ({})", data.meta.object, args.data.display());
-    write_report(&args.out, &d, &title)?;
+    write_report(out, &d, &title)?;
     let how = d.how_far.as_ref().map_or(String::new(), |h| {
         format!(
             "; adding {}: held-out MDE {:.3} -> {:.3} cm ({:.1}% shrinkage)",
@@ -302,7 +482,7 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
         d.verdict,
         how,
         t0.elapsed().as_secs_f64(),
-        args.out.join("report.html").display()
+        out.join("report.html").display()
     );
     // The user's next step: diagnose again with the verdict's effect in the model. With the
     // verdict `none` / `unknown` there is no effect to add, but the control refit (the same
@@ -365,5 +545,161 @@ mod tests {
         );
         assert!(parse_candidates("drag,+bending").is_err());
         assert!(parse_candidates("+gravity").is_err());
+    }
+
+    fn level(race: usize, substep: SubstepArg, work_per_rollout: f64) -> Level {
+        Level {
+            race,
+            substep,
+            effort: gap::Effort {
+                refit_rollouts: 1000,
+                heldout_rollouts: 0,
+                work_per_rollout,
+                substeps: 1.0,
+                springs: 1.0,
+                particles: 1.0,
+            },
+        }
+    }
+
+    #[test]
+    fn the_budget_takes_the_first_level_within_it_and_the_cheapest_when_none_is() {
+        // Estimated 320, 160 and 80 s.
+        let levels = [
+            level(0, SubstepArg::Auto, 1e8),
+            level(3, SubstepArg::Auto, 5e7),
+            level(3, SubstepArg::Spectral, 2.5e7),
+        ];
+        let pick = |minutes: f64| choose_level(minutes, &levels).map(|(k, c)| (k, c.options));
+        assert_eq!(pick(10.0), Some((0, String::new())));
+        assert_eq!(pick(3.0), Some((1, "--race 3".to_string())));
+        assert_eq!(
+            pick(2.0),
+            Some((2, "--race 3 --substep spectral".to_string()))
+        );
+        assert_eq!(
+            pick(0.5),
+            Some((2, "--race 3 --substep spectral".to_string()))
+        );
+        // Over budget everywhere, a level dearer than an earlier one is not taken, and of
+        // equals the first (fewer options) is.
+        let odd = [
+            level(0, SubstepArg::Auto, 1e8),
+            level(3, SubstepArg::Auto, 2e8),
+            level(3, SubstepArg::Spectral, 1e8),
+        ];
+        assert_eq!(choose_level(1.0, &odd).map(|(k, _)| k), Some(0));
+        let flat = [
+            level(0, SubstepArg::Auto, 1e8),
+            level(3, SubstepArg::Auto, 5e7),
+            level(3, SubstepArg::Spectral, 5e7),
+        ];
+        assert_eq!(choose_level(1.0, &flat).map(|(k, _)| k), Some(1));
+        let (_, c) = choose_level(2.0, &levels).unwrap();
+        assert!((c.full_estimated_s - 320.0).abs() < 1e-6 && (c.estimated_s - 80.0).abs() < 1e-6);
+        // No budget, or nothing to choose between (options given): no choice.
+        assert!(choose_level(0.0, &levels).is_none());
+        assert!(choose_level(f64::NAN, &levels).is_none());
+        assert!(choose_level(1.0, &levels[..1]).is_none());
+    }
+
+    #[derive(clap::Parser)]
+    struct Diag {
+        #[command(flatten)]
+        args: DiagnoseArgs,
+    }
+
+    #[test]
+    fn a_tight_budget_races_the_refits_and_the_report_says_so() {
+        let dir = std::env::temp_dir().join(format!("pgrd-budget-{}", std::process::id()));
+        let data = concat!(env!("CARGO_MANIFEST_DIR"), "/../fixtures/rope");
+        let fit = crate::cmd_fit::FitArgs {
+            data: data.into(),
+            run: dir.join("run"),
+            population: 2,
+            generations: 1,
+            samples: 1,
+            seed: 0,
+            rescore: 0,
+            rescore_scenes: 0,
+            protocol: ProtocolArg::Paper,
+            bounds: crate::cmd_fit::BoundsArg::Reference,
+            substep: SubstepArg::Auto,
+            quiet: true,
+        };
+        crate::cmd_fit::run(&fit).unwrap();
+        let diagnose = |out: &str, extra: &[&str]| -> Diagnosis {
+            let out = dir.join(out);
+            let mut argv: Vec<String> = [
+                "diagnose",
+                "--data",
+                data,
+                "--run",
+                dir.join("run").to_str().unwrap(),
+                "--out",
+                out.to_str().unwrap(),
+                "--population",
+                "4",
+                "--generations",
+                "4",
+                "--samples",
+                "2",
+                "--resamples",
+                "50",
+                "--candidates",
+                "drag,bending,actuation-delay,friction,plasticity,grasp-slip",
+                "--no-network",
+                "--quiet",
+            ]
+            .iter()
+            .map(|s| s.to_string())
+            .collect();
+            argv.extend(extra.iter().map(|s| s.to_string()));
+            let args = <Diag as clap::Parser>::try_parse_from(argv).unwrap().args;
+            estimate(&args).unwrap();
+            run(&args).unwrap();
+            let text = std::fs::read_to_string(out.join("report.json")).unwrap();
+            serde_json::from_str(&text).unwrap()
+        };
+        // A budget no diagnosis meets: the cheapest level, recorded. On this soft rope both
+        // substep rules sit at the 2 ms accuracy cap, so the spectral one saves nothing and
+        // is not taken.
+        let tight = diagnose("tight", &["--budget-min", "1e-9"]);
+        let b = tight
+            .budget
+            .as_ref()
+            .expect("the budget's choice is recorded");
+        assert_eq!(b.options, "--race 3");
+        assert!(b.estimated_s < b.full_estimated_s, "{b:?}");
+        assert_eq!(tight.config.race, 3);
+        assert_eq!(tight.substep, Some(springs::Substep::AUTO));
+        assert_eq!(tight.ranking.iter().filter(|r| r.raced_out).count(), 3);
+        // At the stiffness bound the spectral substep is the cheaper rule: the scenes are
+        // rebuilt under it.
+        let path = backbone_path(&dir.join("run"));
+        let mut file = read_backbone(&dir.join("run")).unwrap();
+        file.params.stiffness = 5e4;
+        write_json(&path, &file).unwrap();
+        let stiff = diagnose("stiff", &["--budget-min", "1e-9"]);
+        assert_eq!(
+            stiff.budget.as_ref().unwrap().options,
+            "--race 3 --substep spectral"
+        );
+        assert_eq!(stiff.substep, Some(springs::Substep::SPECTRAL));
+        let page = std::fs::read_to_string(dir.join("stiff").join("report.html")).unwrap();
+        assert!(page.contains("<code>--race 3 --substep spectral</code>"));
+        assert_eq!(stiff.config.race, 3);
+        // Options given on the command line are not overruled, and nothing is recorded.
+        let given = diagnose("given", &["--budget-min", "1e-9", "--race", "0"]);
+        assert!(given.budget.is_none());
+        assert_eq!(given.config.race, 0);
+        assert_eq!(given.substep, Some(springs::Substep::AUTO));
+        // The fixture is far within the default budget: the whole diagnosis, the check recorded.
+        let roomy = diagnose("roomy", &[]);
+        assert_eq!(roomy.budget.as_ref().unwrap().options, "");
+        assert_eq!(roomy.config.race, 0);
+        let page = std::fs::read_to_string(dir.join("roomy").join("report.html")).unwrap();
+        assert!(!page.contains("Time budget"));
+        std::fs::remove_dir_all(&dir).ok();
     }
 }

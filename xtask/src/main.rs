@@ -64,6 +64,7 @@ fn main() -> anyhow::Result<()> {
     match Cli::parse().command {
         Command::Demo(args) => cmd_demo::run(&args),
         Command::Gen(args) => cmd_gen::run(&args),
+        Command::Diagnose(args) if args.estimate => cmd_diagnose::estimate(&args),
         Command::Diagnose(args) => cmd_diagnose::run(&args).map(drop),
         Command::DiagnoseBench(args) => cmd_diagnose::run_bench(&args).map(drop),
         Command::Fit(args) => cmd_fit::run(&args).map(drop),

@@ -252,6 +252,10 @@ pub struct Diagnosis {
     /// it was recorded, all of which used [`springs::Substep::AUTO`]).
     #[serde(default)]
     pub substep: Option<springs::Substep>,
+    /// How a time budget chose the race and the substep rule, when it did (absent when the
+    /// options were given or no budget was set, and in reports written before it existed).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub budget: Option<crate::BudgetChoice>,
     /// Training / held-out episodes.
     pub episodes: [usize; 2],
     /// Wall time, s.
@@ -753,6 +757,7 @@ pub fn diagnose(
         learnable: None,
         config: config.clone(),
         substep: Some(substep),
+        budget: None,
         episodes: [train.len(), val.len()],
         wall_s: t0.elapsed().as_secs_f64(),
     })

@@ -268,6 +268,17 @@ pub fn render_html(d: &Diagnosis, title: &str) -> String {
         substep_name(d.substep),
         d.wall_s
     );
+    if let Some(b) = d.budget.as_ref().filter(|b| !b.options.is_empty()) {
+        let _ = write!(
+            body,
+            "<p>Time budget {:.0} min: estimated {:.0} s as given, so the diagnosis ran with \
+             <code>{}</code> (estimated {:.0} s). <code>--budget-min 0</code> runs it whole.</p>",
+            b.budget_s / 60.0,
+            b.full_estimated_s,
+            esc(&b.options),
+            b.estimated_s
+        );
+    }
     let base: Vec<String> = d.control.base.iter().map(|b| b.label()).collect();
     let _ = write!(
         body,

@@ -18,7 +18,8 @@
 //!   cannot separate go to the one whose signature matches the residual best ([`break_tie`]).
 //! - With [`DiagnoseConfig::race`] the candidates' refits race: half the generations for
 //!   every candidate, the rest only for the best few by training loss ([`RACE_SCENES`]);
-//!   the control and the probe always run whole.
+//!   the control and the probe always run whole. [`effort`] counts a diagnosis's simulator
+//!   work before it runs (no clock), so a time budget can choose the race and the substep rule.
 //! - A model may already hold some library effects ([`BaseEffect`], e.g. the verdict of an
 //!   earlier diagnosis): they are refitted with the backbone in the control and in every
 //!   candidate refit, so the diagnosis ranks the remaining candidates against that model.
@@ -45,6 +46,7 @@
 mod base;
 mod candidates;
 mod diagnose;
+mod effort;
 pub mod forces;
 mod html;
 mod judge;
@@ -60,6 +62,7 @@ pub use diagnose::{
     ControlFit, DiagnoseConfig, Diagnosis, Heldout, HowFar, RACE_SCENES, RankedEffect, TieBreak,
     diagnose, evaluate, material_frame,
 };
+pub use effort::{BudgetChoice, Effort, SECONDS_PER_WORK, effort};
 pub use html::render_html;
 pub use judge::{Judgement, judge};
 pub use learnable::{Learnable, add_learnable};

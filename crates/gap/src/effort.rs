@@ -1,0 +1,157 @@
+//! What a diagnosis will cost before it runs, counted in simulator work rather than read off
+//! a clock, so that a choice made from it (`cargo xtask diagnose --budget-min`) is the same on
+//! every run of the same inputs.
+
+use scene::Scene;
+use serde::{Deserialize, Serialize};
+use springs::{SpringParams, Substep};
+
+use crate::{Candidate, DiagnoseConfig, GapError, RACE_SCENES};
+
+/// Training scenes whose backbones are built to measure the work of one rollout (the
+/// episodes of a dataset share one object, so a few say what all cost).
+const SAMPLED_SCENES: usize = 8;
+
+/// The simulator work of one diagnosis, before it runs.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Effort {
+    /// Rollouts of training episodes by every refit (control, candidates, probe), the race's
+    /// looks and the final rescorings included.
+    pub refit_rollouts: usize,
+    /// Rollouts of held-out episodes: the model as given, every refit and every candidate's
+    /// effect-off twin.
+    pub heldout_rollouts: usize,
+    /// Work of one rollout: steps × substeps per step × (springs + particles), mean over up
+    /// to eight training episodes at the given parameters, with the base effects
+    /// ([`DiagnoseConfig::base`]) in the backbone.
+    pub work_per_rollout: f64,
+    /// Substeps per step, springs and particles of those episodes' backbones (means).
+    pub substeps: f64,
+    /// See `substeps`.
+    pub springs: f64,
+    /// See `substeps`.
+    pub particles: f64,
+}
+
+impl Effort {
+    /// Total work: every rollout times the work of one.
+    pub fn work(&self) -> f64 {
+        (self.refit_rollouts + self.heldout_rollouts) as f64 * self.work_per_rollout
+    }
+
+    /// Estimated wall time on the 2-core dev VM of `docs/BENCHMARKS.md` with both threads,
+    /// seconds: [`Effort::work`] times [`SECONDS_PER_WORK`].
+    pub fn estimated_s(&self) -> f64 {
+        self.work() * SECONDS_PER_WORK
+    }
+}
+
+/// Wall seconds per unit of [`Effort::work`] on the 2-core dev VM with two threads: the
+/// median of the 18 default-size diagnoses of sessions 32–34 (six generated objects, with and
+/// without the race and the spectral substep; `docs/gap.md`, "Time budget"), whose measured
+/// times lie between 0.79 and 1.39 times the estimate. The refits move the stiffness, and
+/// with it the substeps, away from the fitted backbone's (the duster's and the teddy's
+/// upward, which makes them the dearest per unit), so the estimate is for choosing, not a
+/// promise; a faster machine takes less.
+pub const SECONDS_PER_WORK: f64 = 3.2e-9;
+
+/// The work of diagnosing `train` / `val` from `base` with `config`, every rollout under
+/// `substep` (which need not be the scenes' own: the estimate can compare rules).
+///
+/// ```no_run
+/// # fn main() -> Result<(), gap::GapError> {
+/// # let (train, val, base): (Vec<scene::Scene>, Vec<scene::Scene>, springs::SpringParams) = todo!();
+/// let config = gap::DiagnoseConfig::default();
+/// let full = gap::effort(&train, &val, &base, &config, springs::Substep::AUTO)?;
+/// let raced = gap::effort(&train, &val, &base, &gap::DiagnoseConfig { race: 3, ..config }, springs::Substep::AUTO)?;
+/// assert!(raced.work() < full.work());
+/// # Ok(()) }
+/// ```
+pub fn effort(
+    train: &[Scene],
+    val: &[Scene],
+    base: &SpringParams,
+    config: &DiagnoseConfig,
+    substep: Substep,
+) -> Result<Effort, GapError> {
+    if train.is_empty() {
+        return Err(GapError::NoScenes("training"));
+    }
+    if val.is_empty() {
+        return Err(GapError::NoScenes("held-out"));
+    }
+    let n = train.len();
+    let generation = config.population * config.samples;
+    let rescoring = if config.rescore > 0 {
+        let scenes = if config.rescore_scenes == 0 {
+            n
+        } else {
+            config.rescore_scenes.min(n)
+        };
+        // The optimiser's mean and the best of up to `rescore` generations.
+        (config.rescore.min(config.generations) + 1) * scenes
+    } else {
+        0
+    };
+    let whole = config.generations * generation + rescoring;
+    let library = config
+        .candidates
+        .iter()
+        .filter(|c| **c != Candidate::ExternalField && !config.base.iter().any(|b| b.effect == **c))
+        .count();
+    let whole_refits = 1 + usize::from(config.probe);
+    let refit_rollouts = if config.race > 0 && config.race < library {
+        let half = config.generations.div_ceil(2);
+        let look = 2 * RACE_SCENES.min(n);
+        whole_refits * whole
+            + library * (half * generation + look)
+            + config.race * ((config.generations - half) * generation + rescoring)
+    } else {
+        (whole_refits + library) * whole
+    };
+    // The model as given, the control, each candidate and its effect-off twin, the probe.
+    let heldout_rollouts = (2 + 2 * library + usize::from(config.probe)) * val.len();
+    let sampled = &train[..SAMPLED_SCENES.min(n)];
+    // The base effects are in every model, and their stiffness counts toward the substep.
+    let frame = crate::material_frame(train)?;
+    let mut sums = [0.0; 4];
+    for s in sampled {
+        let sim = springs::SimConfig {
+            substep,
+            ..s.sim_config()
+        };
+        let b = s.backbone(base, &sim, crate::backbone_options(&config.base, &frame))?;
+        let (sub, springs, particles) = (
+            f64::from(b.substeps()),
+            b.springs().len() as f64,
+            b.num_particles() as f64,
+        );
+        sums[0] += s.window.steps as f64 * sub * (springs + particles);
+        sums[1] += sub;
+        sums[2] += springs;
+        sums[3] += particles;
+    }
+    let m = sampled.len() as f64;
+    Ok(Effort {
+        refit_rollouts,
+        heldout_rollouts,
+        work_per_rollout: sums[0] / m,
+        substeps: sums[1] / m,
+        springs: sums[2] / m,
+        particles: sums[3] / m,
+    })
+}
+
+/// How a time budget shaped a diagnosis (`cargo xtask diagnose --budget-min`): the estimate of
+/// the whole diagnosis, the options chosen to fit the budget and their estimate.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct BudgetChoice {
+    /// The budget, seconds on the reference machine of [`SECONDS_PER_WORK`].
+    pub budget_s: f64,
+    /// Estimated wall time of the diagnosis without race and with the run's substep rule, s.
+    pub full_estimated_s: f64,
+    /// Estimated wall time with the options chosen, s.
+    pub estimated_s: f64,
+    /// The options chosen, as command-line flags (empty: none needed).
+    pub options: String,
+}

@@ -1,0 +1,126 @@
+//! The work estimate of a diagnosis (`gap::effort`): what it counts, and that it moves the
+//! way the options it is used to choose between move the real cost.
+
+use gap::{BaseEffect, Candidate, DiagnoseConfig};
+
+mod common;
+use common::{backbone, scenes};
+
+fn small() -> DiagnoseConfig {
+    DiagnoseConfig {
+        population: 3,
+        generations: 3,
+        samples: 1,
+        rescore: 1,
+        candidates: vec![
+            Candidate::Drag,
+            Candidate::ActuationDelay,
+            Candidate::Bending,
+        ],
+        ..DiagnoseConfig::default()
+    }
+}
+
+#[test]
+fn rollouts_are_counted_as_the_diagnosis_runs_them() {
+    let train = scenes(dataset::Split::Train);
+    let val = scenes(dataset::Split::Val);
+    let (n, v) = (train.len(), val.len());
+    let auto = springs::Substep::AUTO;
+    let whole_cfg = small();
+    let whole = gap::effort(&train, &val, &backbone(), &whole_cfg, auto).unwrap();
+    // One refit: 3 generations of 3 candidates on 1 scene, then the optimiser's mean and the
+    // best generation's best (rescore 1) on every training scene. Control, probe and three
+    // candidates refit whole.
+    let refit = 3 * 3 + 2 * n;
+    assert_eq!(whole.refit_rollouts, 5 * refit);
+    // Held out: the model as given, the control, each candidate and its effect-off twin, the
+    // probe.
+    assert_eq!(whole.heldout_rollouts, (2 + 2 * 3 + 1) * v);
+    // A race keeping one of three: the control and the probe whole, every candidate's first
+    // two generations and its look (two contenders on up to RACE_SCENES scenes), then the
+    // kept one's last generation and rescoring.
+    let raced_cfg = DiagnoseConfig { race: 1, ..small() };
+    let raced = gap::effort(&train, &val, &backbone(), &raced_cfg, auto).unwrap();
+    let look = 2 * gap::RACE_SCENES.min(n);
+    assert_eq!(
+        raced.refit_rollouts,
+        2 * refit + 3 * (2 * 3 + look) + (3 + 2 * n)
+    );
+    assert_eq!(raced.work_per_rollout, whole.work_per_rollout);
+    // Keeping every candidate is no race (as in the diagnosis).
+    let all = DiagnoseConfig { race: 3, ..small() };
+    assert_eq!(
+        gap::effort(&train, &val, &backbone(), &all, auto)
+            .unwrap()
+            .refit_rollouts,
+        whole.refit_rollouts
+    );
+    // A base effect is part of the model, not a candidate: one refit fewer.
+    let based = DiagnoseConfig {
+        base: BaseEffect::parse_list("bending").unwrap(),
+        ..small()
+    };
+    let b = gap::effort(&train, &val, &backbone(), &based, auto).unwrap();
+    assert_eq!(b.refit_rollouts, 4 * refit);
+    assert_eq!(b.heldout_rollouts, (2 + 2 * 2 + 1) * v);
+    assert!(b.work() > 0.0 && b.estimated_s() > 0.0);
+}
+
+#[test]
+fn work_per_rollout_follows_the_substep_rule_and_the_stiffness() {
+    let train = scenes(dataset::Split::Train);
+    let val = scenes(dataset::Split::Val);
+    // Stiff enough that neither rule sits at the 2 ms accuracy cap.
+    let stiff = springs::SpringParams {
+        stiffness: 2e5,
+        ..backbone()
+    };
+    let cfg = small();
+    let e = |p: &springs::SpringParams, s| gap::effort(&train, &val, p, &cfg, s).unwrap();
+    let auto = e(&stiff, springs::Substep::AUTO);
+    let spectral = e(&stiff, springs::Substep::SPECTRAL);
+    assert!(
+        spectral.substeps < auto.substeps,
+        "spectral {} vs auto {} substeps",
+        spectral.substeps,
+        auto.substeps
+    );
+    assert!(spectral.work_per_rollout < auto.work_per_rollout);
+    // Same springs and particles: only the substep differs.
+    assert_eq!(
+        (spectral.springs, spectral.particles),
+        (auto.springs, auto.particles)
+    );
+    let soft = e(&backbone(), springs::Substep::AUTO);
+    assert!(soft.substeps <= auto.substeps);
+    // The definition: steps × substeps × (springs + particles), mean over the sampled
+    // training episodes (all of the fixture's).
+    let sampled = &train[..train.len().min(8)];
+    let mean = sampled
+        .iter()
+        .map(|s| {
+            let b = s
+                .backbone(&stiff, &s.sim_config(), springs::BackboneOptions::default())
+                .unwrap();
+            s.window.steps as f64
+                * f64::from(b.substeps())
+                * (b.springs().len() + b.num_particles()) as f64
+        })
+        .sum::<f64>()
+        / sampled.len() as f64;
+    assert!((auto.work_per_rollout - mean).abs() <= 1e-9 * mean);
+}
+
+#[test]
+fn empty_splits_are_errors() {
+    let val = scenes(dataset::Split::Val);
+    let r = gap::effort(
+        &[],
+        &val,
+        &backbone(),
+        &DiagnoseConfig::default(),
+        springs::Substep::AUTO,
+    );
+    assert!(matches!(r, Err(gap::GapError::NoScenes(_))));
+}
