@@ -175,6 +175,54 @@ fn config_from(args: &DiagnoseArgs, run_effects: &[BaseEffect]) -> anyhow::Resul
     })
 }
 
+/// Arguments of `report-page`.
+#[derive(clap::Args)]
+pub struct ReportPageArgs {
+    /// Report directory holding `report.json` (written by `diagnose`).
+    pub dir: PathBuf,
+    /// Page title (default: the one of the `report.html` there, else the directory's name).
+    #[arg(long)]
+    pub title: Option<String>,
+}
+
+/// `report-page`: writes `<dir>/report.html` again from `<dir>/report.json` with this
+/// version's page, e.g. for a report written before the page learnt something.
+pub fn report_page(args: &ReportPageArgs) -> anyhow::Result<()> {
+    let json = args.dir.join("report.json");
+    let text =
+        std::fs::read_to_string(&json).with_context(|| format!("reading {}", json.display()))?;
+    let d: Diagnosis = serde_json::from_str(&text)
+        .with_context(|| format!("{} is not a diagnosis report", json.display()))?;
+    let page = args.dir.join("report.html");
+    let title = match &args.title {
+        Some(t) => t.clone(),
+        None => page_title(&page).unwrap_or_else(|| {
+            args.dir.file_name().map_or_else(
+                || args.dir.display().to_string(),
+                |n| n.to_string_lossy().into(),
+            )
+        }),
+    };
+    dataset::write_atomic(&page, gap::render_html(&d, &title).as_bytes())
+        .with_context(|| format!("writing {}", page.display()))?;
+    println!("{} ({}) -> {}", d.verdict, title, page.display());
+    Ok(())
+}
+
+/// The title of a page `gap::render_html` wrote, unescaped; `None` for any other file.
+fn page_title(page: &Path) -> Option<String> {
+    const OPEN: &str = "<title>pgrd diagnosis: ";
+    let s = std::fs::read_to_string(page).ok()?;
+    let start = s.find(OPEN)? + OPEN.len();
+    let end = start + s[start..].find("</title>")?;
+    Some(
+        s[start..end]
+            .replace("&lt;", "<")
+            .replace("&gt;", ">")
+            .replace("&amp;", "&"),
+    )
+}
+
 /// Writes `<out>/report.json` and `<out>/report.html`.
 pub fn write_report(out: &Path, diagnosis: &Diagnosis, title: &str) -> anyhow::Result<()> {
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
@@ -700,6 +748,34 @@ mod tests {
         assert_eq!(roomy.config.race, 0);
         let page = std::fs::read_to_string(dir.join("roomy").join("report.html")).unwrap();
         assert!(!page.contains("Time budget"));
+        // `report-page` writes the page again from report.json, keeping its title.
+        let stiff_dir = dir.join("stiff");
+        let old = std::fs::read_to_string(stiff_dir.join("report.html")).unwrap();
+        std::fs::write(
+            stiff_dir.join("report.html"),
+            old.replace("Time budget", "x"),
+        )
+        .unwrap();
+        let again = ReportPageArgs {
+            dir: stiff_dir.clone(),
+            title: None,
+        };
+        report_page(&again).unwrap();
+        assert_eq!(
+            std::fs::read_to_string(stiff_dir.join("report.html")).unwrap(),
+            old
+        );
+        // Not a report: an error, and the page is left alone.
+        std::fs::write(stiff_dir.join("report.json"), "{\"verdict\": 1}").unwrap();
+        let err = report_page(&again).unwrap_err();
+        assert!(
+            format!("{err:#}").contains("is not a diagnosis report"),
+            "{err:#}"
+        );
+        assert_eq!(
+            std::fs::read_to_string(stiff_dir.join("report.html")).unwrap(),
+            old
+        );
         std::fs::remove_dir_all(&dir).ok();
     }
 }

@@ -39,6 +39,8 @@ enum Command {
     Gen(cmd_gen::GenArgs),
     /// Diagnose the sim-to-real gap of a fitted run: where, which effect, how far it shrinks.
     Diagnose(cmd_diagnose::DiagnoseArgs),
+    /// Write a diagnosis's report.html again from its report.json (this version's page).
+    ReportPage(cmd_diagnose::ReportPageArgs),
     /// Check the diagnosis on reference-world data with withheld effects.
     DiagnoseBench(cmd_diagnose::DiagnoseBenchArgs),
     /// Fit the backbone's parameters with CMA-ES on a dataset's train split.
@@ -66,6 +68,7 @@ fn main() -> anyhow::Result<()> {
         Command::Gen(args) => cmd_gen::run(&args),
         Command::Diagnose(args) if args.estimate => cmd_diagnose::estimate(&args),
         Command::Diagnose(args) => cmd_diagnose::run(&args).map(drop),
+        Command::ReportPage(args) => cmd_diagnose::report_page(&args),
         Command::DiagnoseBench(args) => cmd_diagnose::run_bench(&args).map(drop),
         Command::Fit(args) => cmd_fit::run(&args).map(drop),
         Command::Refine(args) => cmd_refine::run(&args),
