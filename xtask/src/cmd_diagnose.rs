@@ -117,7 +117,8 @@ pub struct DiagnoseArgs {
     pub write_run: Option<PathBuf>,
     /// How the simulator chooses its substep in every rollout of the diagnosis (the backbone
     /// as given included): every contender is refitted and compared under it. Default: the
-    /// run's own. `--write-run` records it in the model it writes.
+    /// run's own, unless `--budget-min` chooses `spectral`. `--write-run` records it in the
+    /// model it writes.
     #[arg(long, value_enum)]
     pub substep: Option<SubstepArg>,
     /// Print only the verdict line.
