@@ -179,29 +179,37 @@ fn config_from(args: &DiagnoseArgs, run_effects: &[BaseEffect]) -> anyhow::Resul
 /// Arguments of `report-page`.
 #[derive(clap::Args)]
 pub struct ReportPageArgs {
-    /// Report directory holding `report.json` (written by `diagnose`).
-    pub dir: PathBuf,
+    /// Report directories, each holding `report.json` (written by `diagnose`).
+    #[arg(required = true)]
+    pub dirs: Vec<PathBuf>,
     /// Page title (default: the one of the `report.html` there, else the directory's name).
     #[arg(long)]
     pub title: Option<String>,
 }
 
 /// `report-page`: writes `<dir>/report.html` again from `<dir>/report.json` with this
-/// version's page, e.g. for a report written before the page learnt something.
+/// version's page for every directory given, e.g. for reports written before the page learnt
+/// something. Stops at the first directory that fails, naming it.
 pub fn report_page(args: &ReportPageArgs) -> anyhow::Result<()> {
-    let json = args.dir.join("report.json");
+    for dir in &args.dirs {
+        one_report_page(dir, args.title.as_deref())
+            .with_context(|| format!("report-page {}", dir.display()))?;
+    }
+    Ok(())
+}
+
+fn one_report_page(dir: &Path, title: Option<&str>) -> anyhow::Result<()> {
+    let json = dir.join("report.json");
     let text =
         std::fs::read_to_string(&json).with_context(|| format!("reading {}", json.display()))?;
     let d: Diagnosis = serde_json::from_str(&text)
         .with_context(|| format!("{} is not a diagnosis report", json.display()))?;
-    let page = args.dir.join("report.html");
-    let title = match &args.title {
-        Some(t) => t.clone(),
+    let page = dir.join("report.html");
+    let title = match title {
+        Some(t) => t.to_string(),
         None => page_title(&page).unwrap_or_else(|| {
-            args.dir.file_name().map_or_else(
-                || args.dir.display().to_string(),
-                |n| n.to_string_lossy().into(),
-            )
+            dir.file_name()
+                .map_or_else(|| dir.display().to_string(), |n| n.to_string_lossy().into())
         }),
     };
     dataset::write_atomic(&page, gap::render_html(&d, &title).as_bytes())
@@ -758,7 +766,7 @@ mod tests {
         )
         .unwrap();
         let again = ReportPageArgs {
-            dir: stiff_dir.clone(),
+            dirs: vec![stiff_dir.clone()],
             title: None,
         };
         report_page(&again).unwrap();
