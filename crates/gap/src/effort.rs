@@ -81,7 +81,9 @@ pub fn effort(
         return Err(GapError::NoScenes("held-out"));
     }
     let n = train.len();
-    let generation = config.population * config.samples;
+    // A generation scores every candidate on `samples` training scenes, all of them when
+    // there are fewer.
+    let generation = config.population * config.samples.min(n).max(1);
     let rescoring = if config.rescore > 0 {
         let scenes = if config.rescore_scenes == 0 {
             n

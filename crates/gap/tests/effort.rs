@@ -65,6 +65,23 @@ fn rollouts_are_counted_as_the_diagnosis_runs_them() {
     assert_eq!(b.refit_rollouts, 4 * refit);
     assert_eq!(b.heldout_rollouts, (2 + 2 * 2 + 1) * v);
     assert!(b.work() > 0.0 && b.estimated_s() > 0.0);
+    // A generation samples at most every training scene.
+    let many = DiagnoseConfig {
+        samples: n + 5,
+        ..small()
+    };
+    let all_scenes = DiagnoseConfig {
+        samples: n,
+        ..small()
+    };
+    assert_eq!(
+        gap::effort(&train, &val, &backbone(), &many, auto)
+            .unwrap()
+            .refit_rollouts,
+        gap::effort(&train, &val, &backbone(), &all_scenes, auto)
+            .unwrap()
+            .refit_rollouts
+    );
 }
 
 #[test]
