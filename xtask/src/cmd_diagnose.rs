@@ -579,6 +579,15 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
                     d.backbone_as_given.mde_cm
                 );
             }
+            if substep != backbone.substep {
+                // The refits' damping suits the rule they ran under, so the run keeps it.
+                println!(
+                    "note: the run is written with the {} substep rule (the run diagnosed used {}): \
+                     its parameters were refitted under it",
+                    substep.name(),
+                    backbone.substep.name()
+                );
+            }
         }
     }
     Ok(d)
@@ -737,7 +746,21 @@ mod tests {
         let mut file = read_backbone(&dir.join("run")).unwrap();
         file.params.stiffness = 5e4;
         write_json(&path, &file).unwrap();
-        let stiff = diagnose("stiff", &["--budget-min", "1e-9"]);
+        let written = dir.join("written");
+        let stiff = diagnose(
+            "stiff",
+            &[
+                "--budget-min",
+                "1e-9",
+                "--write-run",
+                written.to_str().unwrap(),
+            ],
+        );
+        // The run it writes keeps the rule its parameters were refitted under.
+        assert_eq!(
+            read_backbone(&written).unwrap().substep,
+            SubstepArg::Spectral
+        );
         assert_eq!(
             stiff.budget.as_ref().unwrap().options,
             "--race 3 --substep spectral"
