@@ -494,6 +494,12 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
                     )
                 }
             );
+            if choice.estimated_s > choice.budget_s {
+                println!(
+                    "  note: no option fits the budget; fewer --generations or --samples, or \
+                     fewer --candidates, would shorten it"
+                );
+            }
         }
         config.race = chosen.race;
         if chosen.substep != substep {
