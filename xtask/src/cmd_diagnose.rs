@@ -426,7 +426,7 @@ pub fn estimate(args: &DiagnoseArgs) -> anyhow::Result<()> {
     for (k, l) in levels.iter().enumerate() {
         let options = l.options(levels[0].substep);
         println!(
-            "  {:>6.0} s  {}: {} refit and {} held-out rollouts, {:.0} substeps per step, {:.0} springs, {:.0} particles{}",
+            "  {:>6.0} s  {}: {} refit, {} held-out and {} signature rollouts, {:.0} substeps per step, {:.0} springs, {:.0} particles{}",
             l.effort.estimated_s(),
             if options.is_empty() {
                 "as given"
@@ -435,6 +435,7 @@ pub fn estimate(args: &DiagnoseArgs) -> anyhow::Result<()> {
             },
             l.effort.refit_rollouts,
             l.effort.heldout_rollouts,
+            l.effort.signature_rollouts,
             l.effort.substeps,
             l.effort.springs,
             l.effort.particles,
@@ -619,14 +620,16 @@ mod tests {
         assert!(parse_candidates("+gravity").is_err());
     }
 
-    fn level(race: usize, substep: SubstepArg, work_per_rollout: f64) -> Level {
+    /// A level whose estimate is `seconds`.
+    fn level(race: usize, substep: SubstepArg, seconds: f64) -> Level {
         Level {
             race,
             substep,
             effort: gap::Effort {
                 refit_rollouts: 1000,
                 heldout_rollouts: 0,
-                work_per_rollout,
+                signature_rollouts: 0,
+                work_per_rollout: seconds / (1000.0 * gap::SECONDS_PER_WORK),
                 substeps: 1.0,
                 springs: 1.0,
                 particles: 1.0,
@@ -636,11 +639,10 @@ mod tests {
 
     #[test]
     fn the_budget_takes_the_first_level_within_it_and_the_cheapest_when_none_is() {
-        // Estimated 320, 160 and 80 s.
         let levels = [
-            level(0, SubstepArg::Auto, 1e8),
-            level(3, SubstepArg::Auto, 5e7),
-            level(3, SubstepArg::Spectral, 2.5e7),
+            level(0, SubstepArg::Auto, 320.0),
+            level(3, SubstepArg::Auto, 160.0),
+            level(3, SubstepArg::Spectral, 80.0),
         ];
         let pick = |minutes: f64| choose_level(minutes, &levels).map(|(k, c)| (k, c.options));
         assert_eq!(pick(10.0), Some((0, String::new())));
@@ -656,15 +658,15 @@ mod tests {
         // Over budget everywhere, a level dearer than an earlier one is not taken, and of
         // equals the first (fewer options) is.
         let odd = [
-            level(0, SubstepArg::Auto, 1e8),
-            level(3, SubstepArg::Auto, 2e8),
-            level(3, SubstepArg::Spectral, 1e8),
+            level(0, SubstepArg::Auto, 320.0),
+            level(3, SubstepArg::Auto, 640.0),
+            level(3, SubstepArg::Spectral, 320.0),
         ];
         assert_eq!(choose_level(1.0, &odd).map(|(k, _)| k), Some(0));
         let flat = [
-            level(0, SubstepArg::Auto, 1e8),
-            level(3, SubstepArg::Auto, 5e7),
-            level(3, SubstepArg::Spectral, 5e7),
+            level(0, SubstepArg::Auto, 320.0),
+            level(3, SubstepArg::Auto, 160.0),
+            level(3, SubstepArg::Spectral, 160.0),
         ];
         assert_eq!(choose_level(1.0, &flat).map(|(k, _)| k), Some(1));
         let (_, c) = choose_level(2.0, &levels).unwrap();

@@ -18,9 +18,12 @@ pub struct Effort {
     /// Rollouts of training episodes by every refit (control, candidates, probe), the race's
     /// looks and the final rescorings included.
     pub refit_rollouts: usize,
-    /// Rollouts of held-out episodes: the model as given, every refit and every candidate's
-    /// effect-off twin.
+    /// Rollouts of held-out episodes: the model as given (twice: for "where" and for its
+    /// score), the control, and every candidate and the probe with their effect-off twins.
     pub heldout_rollouts: usize,
+    /// Rollouts of training episodes for the residual signatures: three per candidate and
+    /// scene (the backbone, the effect at its start and at neutral).
+    pub signature_rollouts: usize,
     /// Work of one rollout: steps × substeps per step × (springs + particles), mean over up
     /// to eight training episodes at the given parameters, with the base effects
     /// ([`DiagnoseConfig::base`]) in the backbone.
@@ -36,7 +39,8 @@ pub struct Effort {
 impl Effort {
     /// Total work: every rollout times the work of one.
     pub fn work(&self) -> f64 {
-        (self.refit_rollouts + self.heldout_rollouts) as f64 * self.work_per_rollout
+        (self.refit_rollouts + self.heldout_rollouts + self.signature_rollouts) as f64
+            * self.work_per_rollout
     }
 
     /// Estimated wall time on the 2-core dev VM of `docs/BENCHMARKS.md` with both threads,
@@ -49,11 +53,11 @@ impl Effort {
 /// Wall seconds per unit of [`Effort::work`] on the 2-core dev VM with two threads: the
 /// median of the 18 default-size diagnoses of sessions 32–34 (six generated objects, with and
 /// without the race and the spectral substep; `docs/gap.md`, "Time budget"), whose measured
-/// times lie between 0.79 and 1.39 times the estimate. The refits move the stiffness, and
+/// times lie between 0.80 and 1.43 times the estimate. The refits move the stiffness, and
 /// with it the substeps, away from the fitted backbone's (the duster's and the teddy's
 /// upward, which makes them the dearest per unit), so the estimate is for choosing, not a
 /// promise; a faster machine takes less.
-pub const SECONDS_PER_WORK: f64 = 3.2e-9;
+pub const SECONDS_PER_WORK: f64 = 3.1e-9;
 
 /// The work of diagnosing `train` / `val` from `base` with `config`, every rollout under
 /// `substep` (which need not be the scenes' own: the estimate can compare rules).
@@ -111,8 +115,9 @@ pub fn effort(
     } else {
         (whole_refits + library) * whole
     };
-    // The model as given, the control, each candidate and its effect-off twin, the probe.
-    let heldout_rollouts = (2 + 2 * library + usize::from(config.probe)) * val.len();
+    let contenders = library + usize::from(config.probe);
+    let heldout_rollouts = (3 + 2 * contenders) * val.len();
+    let signature_rollouts = 3 * contenders * config.signature_scenes.clamp(1, n);
     let sampled = &train[..SAMPLED_SCENES.min(n)];
     // The base effects are in every model, and their stiffness counts toward the substep.
     let frame = crate::material_frame(train)?;
@@ -137,6 +142,7 @@ pub fn effort(
     Ok(Effort {
         refit_rollouts,
         heldout_rollouts,
+        signature_rollouts,
         work_per_rollout: sums[0] / m,
         substeps: sums[1] / m,
         springs: sums[2] / m,
