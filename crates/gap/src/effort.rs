@@ -19,7 +19,8 @@ pub struct Effort {
     /// looks and the final rescorings included.
     pub refit_rollouts: usize,
     /// Rollouts of held-out episodes: the model as given (twice: for "where" and for its
-    /// score), the control, and every candidate and the probe with their effect-off twins.
+    /// score), the control, every candidate and the probe with their effect-off twins, and
+    /// the "how far" pair (the control and the shown candidate again, with EMD).
     pub heldout_rollouts: usize,
     /// Rollouts of training episodes for the residual signatures: three per candidate and
     /// scene (the backbone, the effect at its start and at neutral).
@@ -116,7 +117,8 @@ pub fn effort(
         (whole_refits + library) * whole
     };
     let contenders = library + usize::from(config.probe);
-    let heldout_rollouts = (3 + 2 * contenders) * val.len();
+    let how_far = if contenders > 0 { 2 } else { 0 };
+    let heldout_rollouts = (3 + 2 * contenders + how_far) * val.len();
     let signature_rollouts = 3 * contenders * config.signature_scenes.clamp(1, n);
     let sampled = &train[..SAMPLED_SCENES.min(n)];
     // The base effects are in every model, and their stiffness counts toward the substep.

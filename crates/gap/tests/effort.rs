@@ -35,9 +35,9 @@ fn rollouts_are_counted_as_the_diagnosis_runs_them() {
     let refit = 3 * 3 + 2 * n;
     assert_eq!(whole.refit_rollouts, 5 * refit);
     // Held out: the model as given (for "where", then scored), the control, each candidate
-    // and the probe with its effect-off twin. Signatures: three rollouts per candidate and
-    // probe on each of up to `signature_scenes` training scenes.
-    assert_eq!(whole.heldout_rollouts, (3 + 2 * 4) * v);
+    // and the probe with its effect-off twin, and the "how far" pair. Signatures: three
+    // rollouts per candidate and probe on each of up to `signature_scenes` training scenes.
+    assert_eq!(whole.heldout_rollouts, (3 + 2 * 4 + 2) * v);
     assert_eq!(whole.signature_rollouts, 3 * 4 * 4.min(n));
     // A race keeping one of three: the control and the probe whole, every candidate's first
     // two generations and its look (two contenders on up to RACE_SCENES scenes), then the
@@ -65,7 +65,7 @@ fn rollouts_are_counted_as_the_diagnosis_runs_them() {
     };
     let b = gap::effort(&train, &val, &backbone(), &based, auto).unwrap();
     assert_eq!(b.refit_rollouts, 4 * refit);
-    assert_eq!(b.heldout_rollouts, (3 + 2 * 3) * v);
+    assert_eq!(b.heldout_rollouts, (3 + 2 * 3 + 2) * v);
     assert!(b.work() > 0.0 && b.estimated_s() > 0.0);
     // A generation samples at most every training scene.
     let many = DiagnoseConfig {
