@@ -399,15 +399,30 @@ fn choose_level(budget_min: f64, levels: &[Level]) -> Option<(usize, gap::Budget
     ))
 }
 
-/// `diagnose --estimate`: the estimated time of each level, nothing run.
-pub fn estimate(args: &DiagnoseArgs) -> anyhow::Result<()> {
+/// What `diagnose` and `diagnose --estimate` start from: the dataset, the run, both splits
+/// under the rule asked for (else the run's own), the settings and the levels of effort.
+struct Setup {
+    data: Dataset,
+    backbone: BackboneFile,
+    protocol: Protocol,
+    substep: SubstepArg,
+    train: Vec<Scene>,
+    val: Vec<Scene>,
+    config: DiagnoseConfig,
+    levels: Vec<Level>,
+}
+
+fn setup(args: &DiagnoseArgs) -> anyhow::Result<Setup> {
     let data = Dataset::open(&args.data)?;
     let backbone = read_backbone(&args.run)?;
     let protocol: Protocol = args.protocol.into();
     let substep = args.substep.unwrap_or(backbone.substep);
     let train = scenes(&data, Split::Train, protocol, substep)?;
     let val = scenes(&data, Split::Val, protocol, substep)?;
-    let config = config_from(args, &backbone.effects)?;
+    let mut config = config_from(args, &backbone.effects)?;
+    // A refined stiffness field stays at its values in every model; the refits move the
+    // global stiffness it multiplies.
+    config.field = backbone.refined.as_ref().map(|r| r.log_factor.clone());
     let levels = effort_levels(
         args,
         backbone.substep,
@@ -416,6 +431,27 @@ pub fn estimate(args: &DiagnoseArgs) -> anyhow::Result<()> {
         &backbone.params,
         &config,
     )?;
+    Ok(Setup {
+        data,
+        backbone,
+        protocol,
+        substep,
+        train,
+        val,
+        config,
+        levels,
+    })
+}
+
+/// `diagnose --estimate`: the estimated time of each level, nothing run.
+pub fn estimate(args: &DiagnoseArgs) -> anyhow::Result<()> {
+    let Setup {
+        data,
+        train,
+        val,
+        levels,
+        ..
+    } = setup(args)?;
     let chosen = choose_level(args.budget_min, &levels).map(|(k, _)| k);
     println!(
         "estimated diagnosis time of {} on a 2-core laptop ({} training, {} held-out episodes):",
@@ -456,28 +492,20 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
         .as_deref()
         .context("--out names the report directory")?;
     let t0 = Instant::now();
-    let data = Dataset::open(&args.data)?;
-    let backbone = read_backbone(&args.run)?;
-    let protocol: Protocol = args.protocol.into();
-    let mut substep = args.substep.unwrap_or(backbone.substep);
-    let mut train = scenes(&data, Split::Train, protocol, substep)?;
-    let mut val = scenes(&data, Split::Val, protocol, substep)?;
     if let Some(dir) = &args.write_run {
         check_write_run(dir, &args.run)?;
     }
-    let mut config = config_from(args, &backbone.effects)?;
-    // A refined stiffness field stays at its values in every model; the refits move the
-    // global stiffness it multiplies.
-    config.field = backbone.refined.as_ref().map(|r| r.log_factor.clone());
+    let Setup {
+        data,
+        backbone,
+        protocol,
+        mut substep,
+        mut train,
+        mut val,
+        mut config,
+        levels,
+    } = setup(args)?;
     let quiet = args.quiet;
-    let levels = effort_levels(
-        args,
-        backbone.substep,
-        &train,
-        &val,
-        &backbone.params,
-        &config,
-    )?;
     let budget = choose_level(args.budget_min, &levels);
     if let Some((k, choice)) = &budget {
         let chosen = &levels[*k];
