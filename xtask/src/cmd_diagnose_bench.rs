@@ -304,6 +304,10 @@ pub struct BenchCase {
     pub true_effect_raced_out: bool,
     /// Wall time of the diagnosis, s.
     pub diagnose_wall_s: f64,
+    /// The diagnosis's estimate before it ran (`gap::effort`: seconds with two threads on the
+    /// dev VM; a bench on one thread takes about twice as long), for checking the count that
+    /// `diagnose --budget-min` chooses by.
+    pub diagnose_estimated_s: f64,
     /// The trained network's comparison (`--network-minutes`), when this case got one.
     pub network: Option<gap::Learnable>,
     /// Significant candidates tied on held-out error, when there were any: `by_shrinkage` is
@@ -435,7 +439,13 @@ fn diagnose(
     args: &DiagnoseBenchArgs,
     race: usize,
 ) -> anyhow::Result<Diagnosis> {
-    let cfg = DiagnoseConfig {
+    let cfg = case_config(base, args, race);
+    Ok(gap::diagnose(train, val, start, &cfg, &mut |_| {})?)
+}
+
+/// The settings of [`diagnose`].
+fn case_config(base: &[BaseEffect], args: &DiagnoseBenchArgs, race: usize) -> DiagnoseConfig {
+    DiagnoseConfig {
         race,
         generations: args.generations,
         samples: args.samples,
@@ -448,8 +458,7 @@ fn diagnose(
             ..gap::VerdictRule::default()
         },
         ..DiagnoseConfig::default()
-    };
-    Ok(gap::diagnose(train, val, start, &cfg, &mut |_| {})?)
+    }
 }
 
 /// The control refit alone (the diagnosis without candidates) and its training MDE, cm.
@@ -789,6 +798,14 @@ pub fn run_bench(args: &DiagnoseBenchArgs) -> anyhow::Result<BenchSummary> {
                 (data, dir, scale, ladder, reached)
             };
             let (train, val) = split(&data, args.substep)?;
+            let estimated = gap::effort(
+                &train,
+                &val,
+                &model.model,
+                &case_config(&base, args, args.race),
+                args.substep.substep(),
+            )?
+            .estimated_s();
             let td = Instant::now();
             let mut d = diagnose(&train, &val, &model.model, &base, args, args.race)?;
             let wall = td.elapsed().as_secs_f64();
@@ -851,6 +868,7 @@ pub fn run_bench(args: &DiagnoseBenchArgs) -> anyhow::Result<BenchSummary> {
                 recovered: after.filter(|_| gap > 0.0).map(|a| (before - a) / gap),
                 true_effect_raced_out: truth_entry.is_some_and(|r| r.raced_out),
                 diagnose_wall_s: wall,
+                diagnose_estimated_s: estimated,
                 network: d.learnable.clone(),
                 tie_break: d.tie_break.clone(),
             };
@@ -1158,6 +1176,12 @@ mod tests {
                 case.true_effect_raced_out, truth.raced_out,
                 "{}",
                 case.truth
+            );
+            // Each case records its estimate, made with the case's own (raced) settings.
+            assert!(
+                case.diagnose_estimated_s > 0.0,
+                "{}",
+                case.diagnose_estimated_s
             );
         }
         std::fs::remove_dir_all(&dir).ok();
