@@ -1,7 +1,10 @@
 //! What the per-spring candidate effects add to a model step: a 1000-particle lattice
 //! (10,476 springs) jostled out of rest so that strains take both signs, one 0.1 s step with
 //! the plain backbone's automatic substep held fixed for every variant (so the rows compare the
-//! cost of a substep, not the effects' stability limits).
+//! cost of a substep, not the effects' stability limits). Then every candidate at its starting
+//! strength (`candidate/<name>`): what a base effect adds to every rollout of a diagnosis, the
+//! source of `gap::effort`'s per-effect factors (no grippers here: the gripper effects cost
+//! nothing per particle).
 //! Run: `cargo bench -p pgrd-gap` (one thread: a step is sequential).
 #![allow(missing_docs)] // criterion_group! generates an undocumented pub fn
 
@@ -64,23 +67,35 @@ fn bench(c: &mut Criterion) {
         plain.substeps(),
         plain.substep_dt()
     );
-    let variants: Vec<(&str, Option<Box<dyn Effect>>)> = vec![
-        ("plain", None),
+    let mut variants: Vec<(String, Option<Box<dyn Effect>>)> = vec![
+        ("plain".into(), None),
         (
-            "nonlinear-elasticity",
+            "nonlinear-elasticity".into(),
             Some(Box::new(StrainStiffening {
                 beta: 400.0,
                 gamma: 0.3,
             })),
         ),
         (
-            "plasticity",
+            "plasticity".into(),
             Some(Box::new(PlasticCreep {
                 yield_strain: 0.02,
                 rate: 5.0,
             })),
         ),
     ];
+    let centre = x.iter().copied().sum::<Vec3>() / x.len() as f32;
+    let frame = gap::MaterialFrame::new(&x, centre).expect("frame");
+    for cand in gap::Candidate::LIBRARY
+        .into_iter()
+        .chain(gap::Candidate::EXTRA)
+        .chain([gap::Candidate::ExternalField])
+    {
+        variants.push((
+            format!("candidate/{}", cand.name()),
+            Some(cand.effect(&cand.start(), &frame)),
+        ));
+    }
     let none = ActionFrame {
         positions: &[],
         closed: &[],
