@@ -46,6 +46,13 @@ pub enum Candidate {
     ExternalField,
 }
 
+/// The range of the external-field probe's window radius, m: from a few centimetres (a local
+/// source) to metres (a global field).
+pub const PROBE_WINDOW_M: [f64; 2] = [0.05, 5.0];
+
+/// How far the probe's centre may lie from the training data's mean position, m, per axis.
+const PROBE_OFFSET_M: f64 = 0.5;
+
 impl Candidate {
     /// The nine named library effects.
     pub const LIBRARY: [Candidate; 9] = [
@@ -130,15 +137,16 @@ impl Candidate {
                 Parameter::linear("field_radial_m_per_s2", -30.0, 30.0),
                 // The field's centre relative to the training data's mean position, and its
                 // window: from a few centimetres (a local source) to metres (a global field).
-                Parameter::linear("field_centre_dx_m", -0.5, 0.5),
-                Parameter::linear("field_centre_dy_m", -0.5, 0.5),
-                Parameter::linear("field_centre_dz_m", -0.5, 0.5),
-                Parameter::log("field_window_m", 0.05, 5.0),
+                Parameter::linear("field_centre_dx_m", -PROBE_OFFSET_M, PROBE_OFFSET_M),
+                Parameter::linear("field_centre_dy_m", -PROBE_OFFSET_M, PROBE_OFFSET_M),
+                Parameter::linear("field_centre_dz_m", -PROBE_OFFSET_M, PROBE_OFFSET_M),
+                Parameter::log("field_window_m", PROBE_WINDOW_M[0], PROBE_WINDOW_M[1]),
             ],
         }
     }
 
-    /// Where the refit starts: a moderate strength, also used for the residual signature.
+    /// Where the refit starts: a moderate strength, also used for the residual signature (on
+    /// data, the probe's start depends on the residuals: [`Candidate::start_in`]).
     pub fn start(self) -> Vec<f64> {
         match self {
             Candidate::Drag => vec![0.3],
@@ -152,6 +160,25 @@ impl Candidate {
             Candidate::MassDistribution => vec![0.5],
             Candidate::GravityScale => vec![1.2],
             Candidate::ExternalField => vec![0.5, 0.5, 0.5, -2.0, 0.0, 0.0, 0.0, 1.0],
+        }
+    }
+
+    /// Where the refit starts on data in `frame`: [`Candidate::start`], except for the probe
+    /// when the frame knows where the backbone's residuals converge ([`crate::residual_focus`]):
+    /// then a central field there, no uniform part, pulling (or pushing, as the residuals do)
+    /// with the start's 2 m/s² at a window as wide as the lines' spread. The centre offset and
+    /// the window are clamped to their ranges.
+    pub fn start_in(self, frame: &MaterialFrame) -> Vec<f64> {
+        match (self, frame.focus) {
+            (Candidate::ExternalField, Some(f)) => {
+                let reach = Vec3::splat(PROBE_OFFSET_M as f32);
+                let d = (f.point() - frame.centre).clamp(-reach, reach);
+                let radial = if f.attracting { -2.0 } else { 2.0 };
+                let window = f.window_m();
+                let [dx, dy, dz] = d.to_array().map(f64::from);
+                vec![0.0, 0.0, 0.0, radial, dx, dy, dz, window]
+            }
+            _ => self.start(),
         }
     }
 
@@ -220,6 +247,9 @@ pub struct MaterialFrame {
     /// Mean tracked position over the training data, m (the external-field probe's centre is
     /// searched around it).
     pub centre: Vec3,
+    /// Where the backbone's residuals converge, when known: the probe's refit starts there
+    /// ([`Candidate::start_in`]).
+    pub focus: Option<crate::ResidualFocus>,
 }
 
 impl MaterialFrame {
@@ -250,7 +280,13 @@ impl MaterialFrame {
         Ok(MaterialFrame {
             coordinate: Arc::new(u),
             centre,
+            focus: None,
         })
+    }
+
+    /// The same frame with the probe's start at `focus`.
+    pub fn with_focus(self, focus: Option<crate::ResidualFocus>) -> Self {
+        MaterialFrame { focus, ..self }
     }
 
     /// From one shape alone, centred on its own mean: the frame of a model that has no
@@ -428,7 +464,7 @@ impl Family for CandidateFamily {
             x.extend(&e.values);
         }
         if let Some(c) = self.candidate {
-            x.extend(c.start());
+            x.extend(c.start_in(&self.frame));
         }
         x
     }

@@ -12,6 +12,7 @@ use springs::SpringParams;
 use crate::GapError;
 use crate::base::{BaseEffect, check_distinct};
 use crate::candidates::{Candidate, CandidateFamily, MaterialFrame};
+use crate::focus::{FOCUS_SCENES, ResidualFocus, residual_focus};
 use crate::judge::{counts, judge};
 use crate::locate::{Where, locate};
 use crate::stats::{Comparison, VerdictRule, paired_shrinkage};
@@ -227,6 +228,11 @@ pub struct Diagnosis {
     pub ranking: Vec<RankedEffect>,
     /// The generic external-field probe against the control.
     pub probe: Option<RankedEffect>,
+    /// Where the backbone's residuals on training episodes converge, at which the probe's
+    /// refit started (absent without the probe, and in reports written before it existed,
+    /// whose probe started as a broad field about the data's mean).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub probe_focus: Option<ResidualFocus>,
     /// The probe against the best significant library candidate (after the tie-break).
     pub probe_vs_best: Option<Comparison>,
     /// Present when significant candidates were tied on held-out error.
@@ -349,7 +355,7 @@ fn effect_switched_off(real: &[f64], cand: Candidate) -> Vec<f64> {
 }
 
 /// Cosine between the residual `truth − base` and the effect's signature
-/// `pred(start) − pred(neutral)` over the tracked, visible positions of `scenes`.
+/// `pred(start) − pred(neutral)` (the start on this data, [`Candidate::start_in`]) over the tracked, visible positions of `scenes`.
 fn signature_cosine(
     base: &SpringParams,
     base_effects: &[BaseEffect],
@@ -378,7 +384,7 @@ fn signature_cosine(
             let run = |v: &[f64]| s.rollout(base, &cfg, with(Some(v))).ok();
             let plain = s.rollout(base, &cfg, with(None)).ok();
             let (Some(plain), Some(on), Some(off)) =
-                (plain, run(&cand.start()), run(&cand.neutral()))
+                (plain, run(&cand.start_in(frame)), run(&cand.neutral()))
             else {
                 return (0.0, 0.0, 0.0);
             };
@@ -562,6 +568,34 @@ pub fn diagnose(
         rescore_scenes: config.rescore_scenes,
     };
     check_distinct(&config.base, None)?;
+    // The fitted backbone as given.
+    let given = CandidateFamily::with_base(*base, &config.base, None, frame.clone())?
+        .with_field(field.clone());
+    let given_real = given.x0();
+    // Where its residuals on training episodes converge: the probe's refit starts there.
+    let focus = if config.probe {
+        let scenes = &train[..FOCUS_SCENES.min(train.len())];
+        let preds: Vec<Option<Vec<Vec<Vec3>>>> = scenes
+            .par_iter()
+            .map(|s| predict(&given, &given_real, s))
+            .collect();
+        residual_focus(scenes, &preds, frame.centre)
+    } else {
+        None
+    };
+    if let Some(f) = &focus {
+        let [x, y, z] = f.point_m;
+        progress(&format!(
+            "probe starts where the backbone's training residuals converge: ({x:.3}, {y:.3}, {z:.3}) m, lines within {:.3} m, {}",
+            f.spread_m,
+            if f.attracting {
+                "pointing to it"
+            } else {
+                "pointing away"
+            }
+        ));
+    }
+    let frame = frame.with_focus(focus);
     let family_of = |cand: Option<Candidate>| -> Result<CandidateFamily, GapError> {
         Ok(
             CandidateFamily::with_base(*base, &config.base, cand, frame.clone())?
@@ -580,10 +614,6 @@ pub fn diagnose(
             raced_out: false,
         })
     };
-    // The fitted backbone as given.
-    let given = CandidateFamily::with_base(*base, &config.base, None, frame.clone())?
-        .with_field(field.clone());
-    let given_real = given.x0();
     let given_preds: Vec<Option<Vec<Vec<Vec3>>>> = val
         .par_iter()
         .map(|s| predict(&given, &given_real, s))
@@ -748,6 +778,7 @@ pub fn diagnose(
         verdict: judged.verdict,
         ranking: order.iter().map(|i| entries[*i].0.clone()).collect(),
         probe: probe.map(|(e, _, _)| e),
+        probe_focus: focus,
         probe_vs_best: judged.probe_vs_best,
         tie_break: judged.tie_break,
         r#where: place,

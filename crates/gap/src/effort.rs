@@ -23,7 +23,8 @@ pub struct Effort {
     /// the "how far" pair (the control and the shown candidate again, with EMD).
     pub heldout_rollouts: usize,
     /// Rollouts of training episodes for the residual signatures: three per candidate and
-    /// scene (the backbone, the effect at its start and at neutral).
+    /// scene (the backbone, the effect at its start and at neutral); with the probe, also the
+    /// backbone on up to [`crate::FOCUS_SCENES`] scenes for its starting point.
     pub signature_rollouts: usize,
     /// Work of one rollout: steps × substeps per step × (springs + particles), mean over up
     /// to eight training episodes at the given parameters, with the base effects
@@ -119,7 +120,12 @@ pub fn effort(
     let contenders = library + usize::from(config.probe);
     let how_far = if contenders > 0 { 2 } else { 0 };
     let heldout_rollouts = (3 + 2 * contenders + how_far) * val.len();
-    let signature_rollouts = 3 * contenders * config.signature_scenes.clamp(1, n);
+    let focus = if config.probe {
+        crate::FOCUS_SCENES.min(n)
+    } else {
+        0
+    };
+    let signature_rollouts = 3 * contenders * config.signature_scenes.clamp(1, n) + focus;
     let sampled = &train[..SAMPLED_SCENES.min(n)];
     // The base effects are in every model, and their stiffness counts toward the substep.
     let frame = crate::material_frame(train)?;

@@ -407,6 +407,21 @@ pub fn render_html(d: &Diagnosis, title: &str) -> String {
             ]
         }),
     );
+    if let (Some(f), Some(_)) = (&d.probe_focus, &d.probe) {
+        let [x, y, z] = f.point_m;
+        let _ = write!(
+            body,
+            "<p>The external-field probe (the last row) started as a field centred where the \
+             backbone's residuals on training episodes converge, ({x:.3}, {y:.3}, {z:.3}) m, \
+             {}, with a window of {:.3} m.</p>",
+            if f.attracting {
+                "pulling toward it"
+            } else {
+                "pushing away from it"
+            },
+            f.window_m()
+        );
+    }
     body += "<h2>Where: error on the object</h2>";
     body += &heat_map(d);
     body += &table(

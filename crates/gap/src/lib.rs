@@ -8,7 +8,9 @@
 //!   `grasp-slip`, `mass-distribution`), each a [`springs::Effect`] with one or two
 //!   parameters ([`forces`]), plus a generic external-field probe used to detect gaps no named
 //!   effect explains. [`Candidate::EXTRA`] holds candidates offered only on request
-//!   (`gravity-scale`, for recordings whose gravity or clock the backbone gets wrong).
+//!   (`gravity-scale`, for recordings whose gravity or clock the backbone gets wrong). The
+//!   probe's refit starts at the point the backbone's residuals converge on
+//!   ([`residual_focus`]).
 //! - [`diagnose`] refits the backbone alone (the control) and the backbone with each candidate on
 //!   the training scenes with the same small CMA-ES budget, scores all on held-out scenes,
 //!   bootstraps the shrinkage over episodes ([`paired_shrinkage`]) and applies the verdict
@@ -47,6 +49,7 @@ mod base;
 mod candidates;
 mod diagnose;
 mod effort;
+mod focus;
 pub mod forces;
 mod html;
 mod judge;
@@ -57,12 +60,13 @@ mod nan;
 mod stats;
 
 pub use base::{BaseEffect, backbone_options};
-pub use candidates::{Candidate, CandidateFamily, MaterialFrame, principal_axis};
+pub use candidates::{Candidate, CandidateFamily, MaterialFrame, PROBE_WINDOW_M, principal_axis};
 pub use diagnose::{
     ControlFit, DiagnoseConfig, Diagnosis, Heldout, HowFar, RACE_SCENES, RankedEffect, TieBreak,
     diagnose, evaluate, material_frame,
 };
 pub use effort::{BudgetChoice, Effort, SECONDS_PER_WORK, effort};
+pub use focus::{FOCUS_SCENES, ResidualFocus, focus_of_lines, residual_focus};
 pub use html::render_html;
 pub use judge::{Judgement, judge};
 pub use learnable::{Learnable, add_learnable};

@@ -138,6 +138,45 @@ fn the_probes_window_confines_its_field() {
 }
 
 #[test]
+fn the_probe_starts_at_the_residuals_focus_and_the_rest_as_before() {
+    let (x, ..) = scene();
+    let plain = frame(&x);
+    let focus = |point_m: [f32; 3], spread_m: f32, attracting: bool| {
+        plain.clone().with_focus(Some(gap::ResidualFocus {
+            point_m,
+            spread_m,
+            attracting,
+        }))
+    };
+    let probe = Candidate::ExternalField;
+    // Without a focus, every candidate starts where it always did.
+    assert_eq!(probe.start_in(&plain), probe.start());
+    // With one: a central field there (offset from the frame centre 0.1, 0.02, 0.05 m), no
+    // uniform part, pulling when the residuals point to it, with the lines' spread as window.
+    let s = probe.start_in(&focus([0.3, 0.02, 0.0], 0.2, true));
+    let want = [0.0, 0.0, 0.0, -2.0, 0.2, 0.0, -0.05, 0.2];
+    assert_eq!(s.len(), want.len());
+    for (a, b) in s.iter().zip(want) {
+        assert!((a - b).abs() < 1e-6, "{s:?}");
+    }
+    // Pushing when they point away; offset and window held to their ranges.
+    let s = probe.start_in(&focus([3.0, -2.0, 0.05], 0.001, false));
+    assert_eq!(s[3], 2.0);
+    assert!((s[4] - 0.5).abs() < 1e-6 && (s[5] + 0.5).abs() < 1e-6 && s[6].abs() < 1e-6);
+    assert_eq!(s[7], gap::PROBE_WINDOW_M[0]);
+    // The library candidates ignore the focus.
+    let f = focus([0.3, 0.02, 0.0], 0.2, true);
+    for c in Candidate::LIBRARY {
+        assert_eq!(c.start_in(&f), c.start(), "{}", c.name());
+    }
+    // The start lies inside the probe's own ranges.
+    let ranges = probe.parameters();
+    for (v, p) in s.iter().zip(&ranges) {
+        assert!(*v >= p.lower && *v <= p.upper, "{} = {v}", p.name);
+    }
+}
+
+#[test]
 fn material_axis_follows_particle_order() {
     let x: Vec<Vec3> = (0..10)
         .map(|i| Vec3::new(-0.1 * i as f32, 0.0, 0.0))

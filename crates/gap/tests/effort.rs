@@ -36,9 +36,13 @@ fn rollouts_are_counted_as_the_diagnosis_runs_them() {
     assert_eq!(whole.refit_rollouts, 5 * refit);
     // Held out: the model as given (for "where", then scored), the control, each candidate
     // and the probe with its effect-off twin, and the "how far" pair. Signatures: three
-    // rollouts per candidate and probe on each of up to `signature_scenes` training scenes.
+    // rollouts per candidate and probe on each of up to `signature_scenes` training scenes,
+    // and the backbone on up to FOCUS_SCENES for the probe's start.
     assert_eq!(whole.heldout_rollouts, (3 + 2 * 4 + 2) * v);
-    assert_eq!(whole.signature_rollouts, 3 * 4 * 4.min(n));
+    assert_eq!(
+        whole.signature_rollouts,
+        3 * 4 * 4.min(n) + gap::FOCUS_SCENES.min(n)
+    );
     // A race keeping one of three: the control and the probe whole, every candidate's first
     // two generations and its look (two contenders on up to RACE_SCENES scenes), then the
     // kept one's last generation and rescoring.
