@@ -683,6 +683,15 @@ fn pick_rung(ladder: &[Rung], target_cm: f64) -> Option<(usize, bool)> {
     Some((most_visible, false))
 }
 
+/// A share as a whole percentage, or "–" for a class with no cases (NaN).
+fn percent(share: f64) -> String {
+    if share.is_finite() {
+        format!("{:.0}%", 100.0 * share)
+    } else {
+        "–".to_string()
+    }
+}
+
 fn share(cases: &[&BenchCase]) -> f64 {
     if cases.is_empty() {
         return f64::NAN;
@@ -988,16 +997,16 @@ pub fn run_bench(args: &DiagnoseBenchArgs) -> anyhow::Result<BenchSummary> {
         wall_s: t0.elapsed().as_secs_f64(),
     };
     println!(
-        "in-library accuracy {:.0}% of {} (target reached; {:.0}% of all {}), none {:.0}%, unknown {:.0}%, in-base {:.0}%, median recovered gap {:.0}% ({:.0}% of cases >= 70%) ({:.0} s)",
-        100.0 * summary.in_library_accuracy,
+        "in-library accuracy {} of {} (target reached; {} of all {}), none {}, unknown {}, in-base {}, median recovered gap {} ({} of cases >= 70%) ({:.0} s)",
+        percent(summary.in_library_accuracy),
         summary.in_library_cases[0],
-        100.0 * summary.in_library_accuracy_all,
+        percent(summary.in_library_accuracy_all),
         summary.in_library_cases[1],
-        100.0 * summary.none_accuracy,
-        100.0 * summary.unknown_accuracy,
-        100.0 * summary.in_base_accuracy,
-        100.0 * summary.median_recovered,
-        100.0 * summary.recovered_70_share,
+        percent(summary.none_accuracy),
+        percent(summary.unknown_accuracy),
+        percent(summary.in_base_accuracy),
+        percent(summary.median_recovered),
+        percent(summary.recovered_70_share),
         summary.wall_s
     );
     if let Some(path) = &args.json {
@@ -1009,6 +1018,13 @@ pub fn run_bench(args: &DiagnoseBenchArgs) -> anyhow::Result<BenchSummary> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn an_empty_class_prints_a_dash_not_nan() {
+        assert_eq!(percent(f64::NAN), "–");
+        assert_eq!(percent(0.6875), "69%");
+        assert_eq!(percent(1.0), "100%");
+    }
 
     #[test]
     fn every_effect_is_relevant_to_at_least_three_objects() {
