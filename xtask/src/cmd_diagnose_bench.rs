@@ -111,7 +111,8 @@ pub fn relevant_cases(object: ObjectKind) -> &'static [&'static str] {
 /// Arguments of `diagnose-bench`.
 #[derive(clap::Args)]
 pub struct DiagnoseBenchArgs {
-    /// Write the objects, cases and summary as JSON here (rewritten after every case).
+    /// Write the objects, cases and summary as JSON here (rewritten after every case with the
+    /// objects and cases so far, under the summary's keys; the summary at the end).
     #[arg(long)]
     pub json: Option<PathBuf>,
     /// Objects to generate (comma-separated).
@@ -683,6 +684,13 @@ fn pick_rung(ladder: &[Rung], target_cm: f64) -> Option<(usize, bool)> {
     Some((most_visible, false))
 }
 
+/// What `--json` holds while the bench runs: the summary's `objects` and `cases` so far.
+#[derive(Serialize)]
+struct PartialBench<'a> {
+    objects: &'a [ObjectModel],
+    cases: &'a [BenchCase],
+}
+
 /// A share as a whole percentage, or "–" for a class with no cases (NaN).
 fn percent(share: f64) -> String {
     if share.is_finite() {
@@ -756,8 +764,14 @@ pub fn run_bench(args: &DiagnoseBenchArgs) -> anyhow::Result<BenchSummary> {
     let mut skipped: Vec<SkippedCase> = Vec::new();
     let save = |objects: &Vec<ObjectModel>, out: &Vec<BenchCase>| -> anyhow::Result<()> {
         if let Some(path) = &args.json {
-            // Partial results survive an interrupted bench.
-            write_json(path, &(objects, out))?;
+            // Partial results survive an interrupted bench, under the summary's own keys.
+            write_json(
+                path,
+                &PartialBench {
+                    objects,
+                    cases: out,
+                },
+            )?;
         }
         Ok(())
     };
