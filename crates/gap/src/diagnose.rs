@@ -12,7 +12,7 @@ use springs::SpringParams;
 use crate::GapError;
 use crate::base::{BaseEffect, check_distinct};
 use crate::candidates::{Candidate, CandidateFamily, MaterialFrame};
-use crate::focus::{FOCUS_SCENES, ResidualFocus, residual_focus};
+use crate::focus::{FOCUS_SCENES, ProbeStart, residual_focus};
 use crate::judge::{counts, judge};
 use crate::locate::{Where, locate};
 use crate::stats::{Comparison, VerdictRule, paired_shrinkage};
@@ -228,11 +228,12 @@ pub struct Diagnosis {
     pub ranking: Vec<RankedEffect>,
     /// The generic external-field probe against the control.
     pub probe: Option<RankedEffect>,
-    /// Where the backbone's residuals on training episodes converge, at which the probe's
-    /// refit started (absent without the probe, and in reports written before it existed,
-    /// whose probe started as a broad field about the data's mean).
+    /// Where the probe's refit started: the focus of the backbone's training residuals and the
+    /// broad start about the data's mean, each refitted, the lower training loss kept (absent
+    /// without the probe, and in reports written before it existed, whose probe started
+    /// broad).
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub probe_focus: Option<ResidualFocus>,
+    pub probe_start: Option<ProbeStart>,
     /// The probe against the best significant library candidate (after the tie-break).
     pub probe_vs_best: Option<Comparison>,
     /// Present when significant candidates were tied on held-out error.
@@ -586,7 +587,7 @@ pub fn diagnose(
     if let Some(f) = &focus {
         let [x, y, z] = f.point_m;
         progress(&format!(
-            "probe starts where the backbone's training residuals converge: ({x:.3}, {y:.3}, {z:.3}) m, lines within {:.3} m, {}",
+            "probe refitted from where the backbone's training residuals converge, ({x:.3}, {y:.3}, {z:.3}) m, lines within {:.3} m, {}, and from its broad start",
             f.spread_m,
             if f.attracting {
                 "pointing to it"
@@ -595,16 +596,21 @@ pub fn diagnose(
             }
         ));
     }
+    // The probe is refitted from its broad start too (the frame without the focus), and the
+    // better of the two on training loss is kept.
+    let broad = frame.clone();
     let frame = frame.with_focus(focus);
-    let family_of = |cand: Option<Candidate>| -> Result<CandidateFamily, GapError> {
-        Ok(
-            CandidateFamily::with_base(*base, &config.base, cand, frame.clone())?
-                .with_field(field.clone()),
-        )
-    };
-    let refit = |cand: Option<Candidate>| -> Result<Model, GapError> {
+    let family_in =
+        |cand: Option<Candidate>, frame: &MaterialFrame| -> Result<CandidateFamily, GapError> {
+            Ok(
+                CandidateFamily::with_base(*base, &config.base, cand, frame.clone())?
+                    .with_field(field.clone()),
+            )
+        };
+    let family_of = |cand: Option<Candidate>| family_in(cand, &frame);
+    let refit_in = |cand: Option<Candidate>, frame: &MaterialFrame| -> Result<Model, GapError> {
         let t = Instant::now();
-        let family = family_of(cand)?;
+        let family = family_in(cand, frame)?;
         let out = fit::fit(train, &family, &fit_cfg, None, &mut |_| {})?;
         Ok(Model {
             family,
@@ -614,6 +620,7 @@ pub fn diagnose(
             raced_out: false,
         })
     };
+    let refit = |cand: Option<Candidate>| refit_in(cand, &frame);
     let given_preds: Vec<Option<Vec<Vec<Vec3>>>> = val
         .par_iter()
         .map(|s| predict(&given, &given_real, s))
@@ -663,10 +670,31 @@ pub fn diagnose(
     let mut raced = race(train, &all, config, &fit_cfg, &family_of, progress)?;
     let mut entries = Vec::new();
     let mut models = Vec::new();
+    let mut probe_start = None;
     for (k, cand) in all.iter().enumerate() {
-        let model = match raced[k].take() {
-            Some(m) => m,
-            None => refit(Some(*cand))?,
+        let mut start_frame = &frame;
+        let model = match (raced[k].take(), focus) {
+            (Some(m), _) => m,
+            (None, Some(focus)) if *cand == Candidate::ExternalField => {
+                let at_focus = refit(Some(*cand))?;
+                let from_broad = refit_in(Some(*cand), &broad)?;
+                let from_focus = at_focus.train_loss < from_broad.train_loss;
+                probe_start = Some(ProbeStart {
+                    focus,
+                    focus_train_loss_m2: at_focus.train_loss,
+                    broad_train_loss_m2: from_broad.train_loss,
+                    from_focus,
+                });
+                let wall_s = at_focus.wall_s + from_broad.wall_s;
+                let kept = if from_focus {
+                    at_focus
+                } else {
+                    start_frame = &broad;
+                    from_broad
+                };
+                Model { wall_s, ..kept }
+            }
+            (None, _) => refit(Some(*cand))?,
         };
         let h = heldout(&model.family, &model.real, val, Some(&control_h), false)?;
         let cmp = paired_shrinkage(
@@ -696,7 +724,7 @@ pub fn diagnose(
             ci95: cmp.ci95,
             significant: false, // set below, by the verdict rule's own test
             effect_itself: Some(itself),
-            signature_cosine: signature_cosine(base, &config.base, *cand, &frame, sig_scenes),
+            signature_cosine: signature_cosine(base, &config.base, *cand, start_frame, sig_scenes),
             fitted: fitted_names(&model.family, &model.real),
             train_loss_m2: model.train_loss,
             refit_wall_s: model.wall_s,
@@ -778,7 +806,7 @@ pub fn diagnose(
         verdict: judged.verdict,
         ranking: order.iter().map(|i| entries[*i].0.clone()).collect(),
         probe: probe.map(|(e, _, _)| e),
-        probe_focus: focus,
+        probe_start,
         probe_vs_best: judged.probe_vs_best,
         tie_break: judged.tie_break,
         r#where: place,

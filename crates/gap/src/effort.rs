@@ -15,8 +15,8 @@ const SAMPLED_SCENES: usize = 8;
 /// The simulator work of one diagnosis, before it runs.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Effort {
-    /// Rollouts of training episodes by every refit (control, candidates, probe), the race's
-    /// looks and the final rescorings included.
+    /// Rollouts of training episodes by every refit (control, candidates, the probe from two
+    /// starts), the race's looks and the final rescorings included.
     pub refit_rollouts: usize,
     /// Rollouts of held-out episodes: the model as given (twice: for "where" and for its
     /// score), the control, every candidate and the probe with their effect-off twins, and
@@ -107,7 +107,8 @@ pub fn effort(
         .iter()
         .filter(|c| **c != Candidate::ExternalField && !config.base.iter().any(|b| b.effect == **c))
         .count();
-    let whole_refits = 1 + usize::from(config.probe);
+    // The control, and the probe twice (from the residuals' focus and from its broad start).
+    let whole_refits = 1 + 2 * usize::from(config.probe);
     let refit_rollouts = if config.race > 0 && config.race < library {
         let half = config.generations.div_ceil(2);
         let look = 2 * RACE_SCENES.min(n);

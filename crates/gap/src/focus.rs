@@ -8,7 +8,9 @@
 //! starts, and the weighted RMS distance of the lines from that point is its starting radius.
 //! Residuals of a structural error point every which way: their point is somewhere near the
 //! data, their spread is wide, and the probe starts as the broad field it was before. Only the
-//! refit's starting point depends on it; the probe's form and ranges do not.
+//! refit's starting point depends on it; the probe's form and ranges do not. A start can trap
+//! the refit in a poor local fit, so the diagnosis refits the probe from this start and from
+//! its broad one and keeps the lower training loss ([`ProbeStart`]).
 
 use glam::{DMat3, DVec3, Vec3};
 use scene::Scene;
@@ -40,6 +42,21 @@ impl ResidualFocus {
         let [lo, hi] = crate::PROBE_WINDOW_M;
         f64::from(self.spread_m).clamp(lo, hi)
     }
+}
+
+/// How the probe's refit started, in a diagnosis's report: it is refitted from the focus and
+/// from its broad start (a field about the data's mean with a 1 m window), and the refit with
+/// the lower training loss is kept.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ProbeStart {
+    /// Where the backbone's training residuals converge.
+    pub focus: ResidualFocus,
+    /// Training loss of the refit started at the focus, m².
+    pub focus_train_loss_m2: f64,
+    /// Training loss of the refit started broad, m².
+    pub broad_train_loss_m2: f64,
+    /// Whether the kept refit is the one started at the focus.
+    pub from_focus: bool,
 }
 
 /// The focus of the residuals `scene.truth − prediction` over the tracked, visible positions

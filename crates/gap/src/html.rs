@@ -407,19 +407,25 @@ pub fn render_html(d: &Diagnosis, title: &str) -> String {
             ]
         }),
     );
-    if let (Some(f), Some(_)) = (&d.probe_focus, &d.probe) {
+    if let (Some(st), Some(_)) = (&d.probe_start, &d.probe) {
+        let f = &st.focus;
         let [x, y, z] = f.point_m;
         let _ = write!(
             body,
-            "<p>The external-field probe (the last row) started as a field centred where the \
-             backbone's residuals on training episodes converge, ({x:.3}, {y:.3}, {z:.3}) m, \
-             {}, with a window of {:.3} m.</p>",
+            "<p>The external-field probe (the last row) was refitted from two starts: a field \
+             centred where the backbone's residuals on training episodes converge, ({x:.3}, \
+             {y:.3}, {z:.3}) m, {}, with a window of {:.3} m (training loss {:.3e} m²), and a \
+             broad field about the data's mean (training loss {:.3e} m²). The row is the refit \
+             from the {} start, the lower training loss.</p>",
             if f.attracting {
                 "pulling toward it"
             } else {
                 "pushing away from it"
             },
-            f.window_m()
+            f.window_m(),
+            st.focus_train_loss_m2,
+            st.broad_train_loss_m2,
+            if st.from_focus { "focus" } else { "broad" }
         );
     }
     body += "<h2>Where: error on the object</h2>";

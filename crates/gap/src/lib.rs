@@ -9,8 +9,8 @@
 //!   parameters ([`forces`]), plus a generic external-field probe used to detect gaps no named
 //!   effect explains. [`Candidate::EXTRA`] holds candidates offered only on request
 //!   (`gravity-scale`, for recordings whose gravity or clock the backbone gets wrong). The
-//!   probe's refit starts at the point the backbone's residuals converge on
-//!   ([`residual_focus`]).
+//!   probe is refitted from the point the backbone's residuals converge on
+//!   ([`residual_focus`]) and from a broad start, and the lower training loss is kept.
 //! - [`diagnose`] refits the backbone alone (the control) and the backbone with each candidate on
 //!   the training scenes with the same small CMA-ES budget, scores all on held-out scenes,
 //!   bootstraps the shrinkage over episodes ([`paired_shrinkage`]) and applies the verdict
@@ -66,7 +66,7 @@ pub use diagnose::{
     diagnose, evaluate, material_frame,
 };
 pub use effort::{BudgetChoice, Effort, SECONDS_PER_WORK, effort};
-pub use focus::{FOCUS_SCENES, ResidualFocus, focus_of_lines, residual_focus};
+pub use focus::{FOCUS_SCENES, ProbeStart, ResidualFocus, focus_of_lines, residual_focus};
 pub use html::render_html;
 pub use judge::{Judgement, judge};
 pub use learnable::{Learnable, add_learnable};

@@ -30,10 +30,11 @@ fn rollouts_are_counted_as_the_diagnosis_runs_them() {
     let whole_cfg = small();
     let whole = gap::effort(&train, &val, &backbone(), &whole_cfg, auto).unwrap();
     // One refit: 3 generations of 3 candidates on 1 scene, then the optimiser's mean and the
-    // best generation's best (rescore 1) on every training scene. Control, probe and three
-    // candidates refit whole.
+    // best generation's best (rescore 1) on every training scene. The control, the probe
+    // twice (from the residuals' focus and from its broad start) and three candidates refit
+    // whole.
     let refit = 3 * 3 + 2 * n;
-    assert_eq!(whole.refit_rollouts, 5 * refit);
+    assert_eq!(whole.refit_rollouts, 6 * refit);
     // Held out: the model as given (for "where", then scored), the control, each candidate
     // and the probe with its effect-off twin, and the "how far" pair. Signatures: three
     // rollouts per candidate and probe on each of up to `signature_scenes` training scenes,
@@ -43,7 +44,7 @@ fn rollouts_are_counted_as_the_diagnosis_runs_them() {
         whole.signature_rollouts,
         3 * 4 * 4.min(n) + gap::FOCUS_SCENES.min(n)
     );
-    // A race keeping one of three: the control and the probe whole, every candidate's first
+    // A race keeping one of three: the control and the probe (twice) whole, every candidate's first
     // two generations and its look (two contenders on up to RACE_SCENES scenes), then the
     // kept one's last generation and rescoring.
     let raced_cfg = DiagnoseConfig { race: 1, ..small() };
@@ -51,7 +52,7 @@ fn rollouts_are_counted_as_the_diagnosis_runs_them() {
     let look = 2 * gap::RACE_SCENES.min(n);
     assert_eq!(
         raced.refit_rollouts,
-        2 * refit + 3 * (2 * 3 + look) + (3 + 2 * n)
+        3 * refit + 3 * (2 * 3 + look) + (3 + 2 * n)
     );
     assert_eq!(raced.work_per_rollout, whole.work_per_rollout);
     // Keeping every candidate is no race (as in the diagnosis).
@@ -68,7 +69,7 @@ fn rollouts_are_counted_as_the_diagnosis_runs_them() {
         ..small()
     };
     let b = gap::effort(&train, &val, &backbone(), &based, auto).unwrap();
-    assert_eq!(b.refit_rollouts, 4 * refit);
+    assert_eq!(b.refit_rollouts, 5 * refit);
     assert_eq!(b.heldout_rollouts, (3 + 2 * 3 + 2) * v);
     assert!(b.work() > 0.0 && b.estimated_s() > 0.0);
     // A generation samples at most every training scene.

@@ -86,13 +86,24 @@ fn report_json_has_the_documented_schema() {
     );
     assert_eq!(w["phases"].as_array().unwrap().len(), 3);
     assert!(v["how_far"]["before"]["emd_cm"].as_f64().unwrap() > 0.0);
-    // Where the probe started: the focus of the backbone's training residuals, near the data.
-    let focus = d.probe_focus.expect("the probe's starting focus");
+    // Where the probe started: refitted from the focus of the backbone's training residuals
+    // (near the data) and from its broad start, the lower training loss kept.
+    let start = d.probe_start.expect("the probe's starts");
+    let focus = start.focus;
     let mean = train[0].truth[0].iter().copied().sum::<glam::Vec3>() / train[0].tracked as f32;
     assert!((focus.point() - mean).length() < 1.0, "{focus:?}");
     assert!(focus.spread_m.is_finite() && focus.spread_m >= 0.0);
+    let kept = d.probe.as_ref().unwrap().train_loss_m2;
     assert_eq!(
-        v["probe_focus"]["attracting"].as_bool(),
+        kept,
+        start.focus_train_loss_m2.min(start.broad_train_loss_m2)
+    );
+    assert_eq!(
+        start.from_focus,
+        start.focus_train_loss_m2 < start.broad_train_loss_m2
+    );
+    assert_eq!(
+        v["probe_start"]["focus"]["attracting"].as_bool(),
         Some(focus.attracting)
     );
     let no_probe = DiagnoseConfig {
@@ -101,11 +112,11 @@ fn report_json_has_the_documented_schema() {
         ..cfg.clone()
     };
     let d2 = gap::diagnose(&train, &val, &base, &no_probe, &mut |_| {}).unwrap();
-    assert!(d2.probe.is_none() && d2.probe_focus.is_none());
+    assert!(d2.probe.is_none() && d2.probe_start.is_none());
     assert!(
         serde_json::to_value(&d2)
             .unwrap()
-            .get("probe_focus")
+            .get("probe_start")
             .is_none()
     );
     let html = gap::render_html(&d, "rope fixture");
