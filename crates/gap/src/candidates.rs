@@ -247,8 +247,9 @@ pub struct MaterialFrame {
     /// Mean tracked position over the training data, m (the external-field probe's centre is
     /// searched around it).
     pub centre: Vec3,
-    /// Where the backbone's residuals converge, when known: the probe's refit starts there
-    /// ([`Candidate::start_in`]).
+    /// Where the backbone's residuals converge, when known: the probe's refit in this frame
+    /// starts there ([`Candidate::start_in`]; the diagnosis also refits it in the frame
+    /// without a focus, from the broad start).
     pub focus: Option<crate::ResidualFocus>,
 }
 

@@ -356,7 +356,8 @@ fn effect_switched_off(real: &[f64], cand: Candidate) -> Vec<f64> {
 }
 
 /// Cosine between the residual `truth − base` and the effect's signature
-/// `pred(start) − pred(neutral)` (the start on this data, [`Candidate::start_in`]) over the tracked, visible positions of `scenes`.
+/// `pred(start) − pred(neutral)` (the start on this data, [`Candidate::start_in`]) over the
+/// tracked, visible positions of `scenes`.
 fn signature_cosine(
     base: &SpringParams,
     base_effects: &[BaseEffect],
@@ -573,7 +574,7 @@ pub fn diagnose(
     let given = CandidateFamily::with_base(*base, &config.base, None, frame.clone())?
         .with_field(field.clone());
     let given_real = given.x0();
-    // Where its residuals on training episodes converge: the probe's refit starts there.
+    // Where its residuals on training episodes converge: one of the probe's two starts.
     let focus = if config.probe {
         let scenes = &train[..FOCUS_SCENES.min(train.len())];
         let preds: Vec<Option<Vec<Vec<Vec3>>>> = scenes

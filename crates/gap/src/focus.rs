@@ -1,4 +1,4 @@
-//! Where the backbone's residual points: the start of the `unknown` probe's window.
+//! Where the backbone's residual points: a start for the `unknown` probe's window.
 //!
 //! A source of force the library has no term for, such as an attracting or repelling point,
 //! pushes every particle toward or away from one place, so the residual displacements
@@ -7,10 +7,10 @@
 //! length (the particles the backbone misses most say the most), is where the probe's window
 //! starts, and the weighted RMS distance of the lines from that point is its starting radius.
 //! Residuals of a structural error point every which way: their point is somewhere near the
-//! data, their spread is wide, and the probe starts as the broad field it was before. Only the
-//! refit's starting point depends on it; the probe's form and ranges do not. A start can trap
-//! the refit in a poor local fit, so the diagnosis refits the probe from this start and from
-//! its broad one and keeps the lower training loss ([`ProbeStart`]).
+//! data and their spread is wide, so that start is a wide field. Only the refit's starting
+//! point depends on it; the probe's form and ranges do not. A start can trap the refit in a
+//! poor local fit, so the diagnosis refits the probe from this start and from its broad one
+//! (a field about the data's mean) and keeps the lower training loss ([`ProbeStart`]).
 
 use glam::{DMat3, DVec3, Vec3};
 use scene::Scene;
