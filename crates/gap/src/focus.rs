@@ -146,7 +146,8 @@ pub fn focus_of_lines(pairs: &[(Vec<Vec3>, Vec<Vec3>)], prior: Vec3) -> Option<R
 mod tests {
     use super::*;
 
-    /// Residuals pushed out from `c` by a repelling source, plus one spread of noise.
+    /// Residuals pointing toward `c` (`sign` +1, an attracting source) or away from it (−1),
+    /// plus noise of the given spread, m.
     fn radial(c: Vec3, sign: f32, noise: f32) -> Vec<(Vec<Vec3>, Vec<Vec3>)> {
         let mut state = 7u32;
         let mut rnd = move || {
