@@ -201,9 +201,20 @@ pub struct TrainArgs {
     /// when resuming from a checkpoint (which holds the weights).
     #[arg(long)]
     pub init_from: Option<PathBuf>,
+    /// With several --residual-scale or --start-from values: train this many candidate
+    /// recipes at once, each in its own thread with --threads workers (2 with --threads 1 on a
+    /// 2-core machine). Each candidate's network is the one it would be on its own, as long as
+    /// it finishes its --iterations (a --max-minutes limit counts the candidate's own time, so
+    /// a shared machine may stop it earlier).
+    #[arg(long, default_value_t = 1)]
+    pub jobs: usize,
     /// Print only the final line.
     #[arg(long)]
     pub quiet: bool,
+    /// Set by the recipe choice when candidates train at once: their progress bars share one
+    /// display, each labelled with its recipe.
+    #[arg(skip)]
+    pub progress: Option<(indicatif::MultiProgress, String)>,
 }
 
 /// Checkpoint selection on held-out training episodes (`--holdout`), in `train.json`.
@@ -483,16 +494,22 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
                 });
         }
         if !args.quiet {
-            eprintln!("resuming at step {} from {}", trainer.step, ckpt.display());
+            let line = format!("resuming at step {} from {}", trainer.step, ckpt.display());
+            match &args.progress {
+                Some((multi, _)) => multi.println(line)?,
+                None => eprintln!("{line}"),
+            }
         }
     }
-    let bar = if args.quiet {
-        ProgressBar::hidden()
-    } else {
-        ProgressBar::new(args.iterations as u64)
+    let bar = match (&args.progress, args.quiet) {
+        (_, true) => ProgressBar::hidden(),
+        (Some((multi, label)), false) => {
+            multi.add(ProgressBar::new(args.iterations as u64).with_prefix(label.clone()))
+        }
+        (None, false) => ProgressBar::new(args.iterations as u64),
     };
     bar.set_style(ProgressStyle::with_template(
-        "{bar:30} {pos}/{len} {msg} [{elapsed} < {eta}]",
+        "{prefix}{bar:30} {pos}/{len} {msg} [{elapsed} < {eta}]",
     )?);
     bar.set_position(trainer.step as u64);
     let t_train = Instant::now();
@@ -651,28 +668,34 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
         .collect::<Vec<_>>();
     let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
     let k = loss.len().min(200);
-    println!(
-        "pgrd ({}) on {}: {} steps, {} loss {:.4} -> {:.4} {unit} (mean of first/last 20), {:.3} -> {:.3} x the backbone's on the same segments (first/last {k}), {} diverged rollouts, {:.1} s -> {}",
-        trainer.net.config().variant(),
-        data.meta.object,
-        trainer.step,
-        train_cfg.loss.name(),
-        mean(&first),
-        mean(&last),
-        loss_ratio(&loss, &base_loss, 0..k),
-        loss_ratio(&loss, &base_loss, loss.len() - k..loss.len()),
-        diverged_rollouts,
-        prior_wall + t_train.elapsed().as_secs_f64(),
-        report_path.display()
+    say(
+        args,
+        format!(
+            "pgrd ({}) on {}: {} steps, {} loss {:.4} -> {:.4} {unit} (mean of first/last 20), {:.3} -> {:.3} x the backbone's on the same segments (first/last {k}), {} diverged rollouts, {:.1} s -> {}",
+            trainer.net.config().variant(),
+            data.meta.object,
+            trainer.step,
+            train_cfg.loss.name(),
+            mean(&first),
+            mean(&last),
+            loss_ratio(&loss, &base_loss, 0..k),
+            loss_ratio(&loss, &base_loss, loss.len() - k..loss.len()),
+            diverged_rollouts,
+            prior_wall + t_train.elapsed().as_secs_f64(),
+            report_path.display()
+        ),
     );
     if let Some(sel) = &selection {
-        println!(
-            "selected the network of step {} of {}: held-out rollout MDE {:.3} cm on {} training episodes (backbone {:.3} cm)",
-            sel.best_step,
-            trainer.step,
-            sel.best_mde_cm(),
-            sel.episodes.len(),
-            sel.backbone_mde_cm
+        say(
+            args,
+            format!(
+                "selected the network of step {} of {}: held-out rollout MDE {:.3} cm on {} training episodes (backbone {:.3} cm)",
+                sel.best_step,
+                trainer.step,
+                sel.best_mde_cm(),
+                sel.episodes.len(),
+                sel.backbone_mde_cm
+            ),
         );
     }
     anyhow::ensure!(
@@ -680,6 +703,15 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
         "training {status} (the run's train.json records it; residual.safetensors holds the last finite parameters)"
     );
     Ok(())
+}
+
+/// Prints a result line on stdout, without tearing the progress bars of candidates training at
+/// once.
+fn say(args: &TrainArgs, line: String) {
+    match &args.progress {
+        Some((multi, _)) => multi.suspend(|| println!("{line}")),
+        None => println!("{line}"),
+    }
 }
 
 #[cfg(test)]

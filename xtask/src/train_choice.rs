@@ -11,6 +11,10 @@
 //! increasing within each), a candidate replaces the choice only when its selected network is a
 //! trained one and [`residual::clearly_better`] than the current choice on the same held-out
 //! episodes. The val split is never read.
+//!
+//! Candidates are independent, so `--jobs N` trains N of them at once (each in a thread with a
+//! rayon pool of its own); the candidates and the choice are bit for bit those of one at a
+//! time when every candidate finishes its iterations (tested).
 
 use std::path::{Path, PathBuf};
 
@@ -116,57 +120,16 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
         "{} not found: fit the backbone first (cargo xtask fit)",
         backbone.display()
     );
-    let mut candidates = Vec::with_capacity(recipes.len());
-    for (k, &(start, bound)) in recipes.iter().enumerate() {
-        // One start mode keeps the directories of the bound-only choice (`bound_<b>`).
-        let dir = match starts.len() {
-            1 => args.run.join(format!("bound_{bound}")),
-            _ => args
-                .run
-                .join(format!("{}_bound_{bound}", start_name(start))),
-        };
-        std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
-        copy_atomic(&backbone, &dir.join("backbone.json"))?;
-        if !args.quiet {
-            eprintln!(
-                "start {}, bound {bound} m/s ({} of {}) -> {}",
-                start_name(start),
-                k + 1,
-                recipes.len(),
-                dir.display()
-            );
-        }
-        let mut one = args.clone();
-        one.residual_scale = vec![bound];
-        one.start_from = vec![start];
-        one.run = dir.clone();
-        crate::cmd_train::run(&one).with_context(|| {
-            format!(
-                "training with start {} and bound {bound}",
-                start_name(start)
-            )
-        })?;
-        let report: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(dir.join("train.json"))?)?;
-        let per_episode: Vec<f64> = report["selection"]["best_episode_mde_cm"]
-            .as_array()
-            .map(|a| a.iter().filter_map(serde_json::Value::as_f64).collect())
-            .unwrap_or_default();
-        let selected_step = report["selection"]["best_step"].as_u64();
-        anyhow::ensure!(
-            !per_episode.is_empty() && selected_step.is_some(),
-            "{} records no held-out selection",
-            dir.join("train.json").display()
-        );
-        candidates.push(Candidate {
-            start_from: start_name(start),
-            bound: bound.to_string().parse()?,
-            run: dir,
-            selected_step: selected_step.unwrap_or(0),
-            heldout_mde_cm: per_episode.iter().sum::<f64>() / per_episode.len() as f64,
-            heldout_episode_mde_cm: per_episode,
-        });
-    }
+    let jobs = args.jobs.clamp(1, recipes.len());
+    let candidates = if jobs == 1 {
+        recipes
+            .iter()
+            .enumerate()
+            .map(|(k, &recipe)| train_candidate(args, starts.len(), k, &recipes, recipe, None))
+            .collect::<anyhow::Result<Vec<_>>>()?
+    } else {
+        train_at_once(args, starts.len(), &recipes, jobs)?
+    };
     let errors: Vec<Vec<f64>> = candidates
         .iter()
         .map(|c| c.heldout_episode_mde_cm.clone())
@@ -204,6 +167,144 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
         report_path.display()
     );
     Ok(())
+}
+
+/// Trains recipe `k` of `recipes` in its own directory under `args.run` and reads its held-out
+/// selection. `progress` shares one display among candidates training at once.
+fn train_candidate(
+    args: &TrainArgs,
+    start_modes: usize,
+    k: usize,
+    recipes: &[(StartArg, f32)],
+    (start, bound): (StartArg, f32),
+    progress: Option<&indicatif::MultiProgress>,
+) -> anyhow::Result<Candidate> {
+    // One start mode keeps the directories of the bound-only choice (`bound_<b>`).
+    let dir = match start_modes {
+        1 => args.run.join(format!("bound_{bound}")),
+        _ => args
+            .run
+            .join(format!("{}_bound_{bound}", start_name(start))),
+    };
+    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    copy_atomic(&args.run.join("backbone.json"), &dir.join("backbone.json"))?;
+    if !args.quiet {
+        let line = format!(
+            "start {}, bound {bound} m/s ({} of {}) -> {}",
+            start_name(start),
+            k + 1,
+            recipes.len(),
+            dir.display()
+        );
+        match progress {
+            Some(multi) => multi.println(line)?,
+            None => eprintln!("{line}"),
+        }
+    }
+    let mut one = args.clone();
+    one.residual_scale = vec![bound];
+    one.start_from = vec![start];
+    one.run = dir.clone();
+    one.progress =
+        progress.map(|multi| (multi.clone(), format!("{} {bound} m/s ", start_name(start))));
+    crate::cmd_train::run(&one).with_context(|| {
+        format!(
+            "training with start {} and bound {bound}",
+            start_name(start)
+        )
+    })?;
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("train.json"))?)?;
+    let per_episode: Vec<f64> = report["selection"]["best_episode_mde_cm"]
+        .as_array()
+        .map(|a| a.iter().filter_map(serde_json::Value::as_f64).collect())
+        .unwrap_or_default();
+    let selected_step = report["selection"]["best_step"].as_u64();
+    anyhow::ensure!(
+        !per_episode.is_empty() && selected_step.is_some(),
+        "{} records no held-out selection",
+        dir.join("train.json").display()
+    );
+    Ok(Candidate {
+        start_from: start_name(start),
+        bound: bound.to_string().parse()?,
+        run: dir,
+        selected_step: selected_step.unwrap_or(0),
+        heldout_mde_cm: per_episode.iter().sum::<f64>() / per_episode.len() as f64,
+        heldout_episode_mde_cm: per_episode,
+    })
+}
+
+/// Trains the recipes `jobs` at a time, each worker thread in a rayon pool of its own with
+/// `args.threads` workers (so one candidate's rollouts never wait for another's), and returns
+/// the candidates in the recipes' order. After a failure no further candidate starts; the
+/// first failure in the recipes' order is returned.
+fn train_at_once(
+    args: &TrainArgs,
+    start_modes: usize,
+    recipes: &[(StartArg, f32)],
+    jobs: usize,
+) -> anyhow::Result<Vec<Candidate>> {
+    use std::sync::Mutex;
+    use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+
+    let pools = (0..jobs)
+        .map(|_| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(args.threads.max(1))
+                .build()
+        })
+        .collect::<Result<Vec<_>, _>>()
+        .context("building the candidates' thread pools")?;
+    let multi = indicatif::MultiProgress::new();
+    let next = AtomicUsize::new(0);
+    let failed = AtomicBool::new(false);
+    let results: Mutex<Vec<Option<anyhow::Result<Candidate>>>> =
+        Mutex::new(recipes.iter().map(|_| None).collect());
+    std::thread::scope(|scope| {
+        for pool in &pools {
+            let (next, failed, results, multi) = (&next, &failed, &results, &multi);
+            scope.spawn(move || {
+                while !failed.load(Ordering::SeqCst) {
+                    let k = next.fetch_add(1, Ordering::SeqCst);
+                    let Some(&recipe) = recipes.get(k) else { break };
+                    let outcome = pool.install(|| {
+                        train_candidate(args, start_modes, k, recipes, recipe, Some(multi))
+                    });
+                    if outcome.is_err() {
+                        failed.store(true, Ordering::SeqCst);
+                    }
+                    if let Ok(mut r) = results.lock() {
+                        r[k] = Some(outcome);
+                    }
+                }
+            });
+        }
+    });
+    // A panicking worker re-raises its panic when the scope ends, so the lock is not poisoned
+    // here; take the results either way.
+    let results = results.into_inner().unwrap_or_else(|p| p.into_inner());
+    let mut candidates = Vec::with_capacity(recipes.len());
+    let mut first_failure = None;
+    for outcome in results {
+        match outcome {
+            Some(Ok(c)) => candidates.push(c),
+            Some(Err(e)) => {
+                first_failure.get_or_insert(e);
+            }
+            None => {}
+        }
+    }
+    if let Some(e) = first_failure {
+        return Err(e);
+    }
+    anyhow::ensure!(
+        candidates.len() == recipes.len(),
+        "only {} of {} candidates ran",
+        candidates.len(),
+        recipes.len()
+    );
+    Ok(candidates)
 }
 
 #[cfg(test)]
@@ -255,6 +356,83 @@ mod tests {
             .map(start_name)
             .collect();
         assert_eq!(names, ["guided", "recorded", "guided-recorded", "rollout"]);
+    }
+
+    #[test]
+    fn candidates_trained_at_once_are_those_trained_one_after_another() {
+        #[derive(clap::Parser)]
+        struct Cli {
+            #[command(flatten)]
+            train: TrainArgs,
+        }
+        let dir = std::env::temp_dir().join(format!("pgrd-train-jobs-{}", std::process::id()));
+        let data = concat!(env!("CARGO_MANIFEST_DIR"), "/../fixtures/rope");
+        let fit = crate::cmd_fit::FitArgs {
+            data: data.into(),
+            run: dir.join("one"),
+            population: 2,
+            generations: 1,
+            samples: 1,
+            seed: 0,
+            rescore: 0,
+            rescore_scenes: 0,
+            protocol: crate::common::ProtocolArg::Paper,
+            bounds: crate::cmd_fit::BoundsArg::Reference,
+            substep: crate::common::SubstepArg::Auto,
+            quiet: true,
+        };
+        crate::cmd_fit::run(&fit).unwrap();
+        std::fs::create_dir_all(dir.join("two")).unwrap();
+        std::fs::copy(dir.join("one/backbone.json"), dir.join("two/backbone.json")).unwrap();
+        let train = |run: &str, jobs: &str| -> serde_json::Value {
+            let run = dir.join(run);
+            let argv = [
+                "train",
+                "--data",
+                data,
+                "--run",
+                run.to_str().unwrap(),
+                "--iterations",
+                "4",
+                "--holdout",
+                "1",
+                "--select-every",
+                "2",
+                "--residual-scale",
+                "0.1,1",
+                "--start-from",
+                "guided,recorded",
+                "--jobs",
+                jobs,
+                "--quiet",
+            ];
+            let cli = <Cli as clap::Parser>::try_parse_from(argv).unwrap();
+            crate::cmd_train::run(&cli.train).unwrap();
+            let text = std::fs::read_to_string(run.join("train.json")).unwrap();
+            serde_json::from_str::<serde_json::Value>(&text).unwrap()["recipe_choice"].clone()
+        };
+        let one = train("one", "1");
+        let two = train("two", "2");
+        let candidates = one["candidates"].as_array().unwrap();
+        assert_eq!(candidates.len(), 4);
+        assert_eq!(one["chosen"], two["chosen"]);
+        for (a, b) in candidates.iter().zip(two["candidates"].as_array().unwrap()) {
+            for key in [
+                "start_from",
+                "bound",
+                "selected_step",
+                "heldout_episode_mde_cm",
+            ] {
+                assert_eq!(a[key], b[key], "{key}");
+            }
+            // The networks themselves, bit for bit.
+            let net = |c: &serde_json::Value| {
+                let run = std::path::PathBuf::from(c["run"].as_str().unwrap());
+                std::fs::read(run.join("train_ckpt.safetensors")).unwrap()
+            };
+            assert!(net(a) == net(b), "{}", a["run"]);
+        }
+        std::fs::remove_dir_all(&dir).ok();
     }
 
     #[test]
