@@ -496,8 +496,9 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
         if !args.quiet {
             let line = format!("resuming at step {} from {}", trainer.step, ckpt.display());
             match &args.progress {
-                Some((multi, _)) => multi.println(line)?,
-                None => eprintln!("{line}"),
+                // A hidden display (stderr not a terminal) drops its lines.
+                Some((multi, _)) if !multi.is_hidden() => multi.println(line)?,
+                _ => eprintln!("{line}"),
             }
         }
     }

@@ -197,8 +197,9 @@ fn train_candidate(
             dir.display()
         );
         match progress {
-            Some(multi) => multi.println(line)?,
-            None => eprintln!("{line}"),
+            // A hidden display (stderr not a terminal) drops its lines: print them plainly.
+            Some(multi) if !multi.is_hidden() => multi.println(line)?,
+            _ => eprintln!("{line}"),
         }
     }
     let mut one = args.clone();
