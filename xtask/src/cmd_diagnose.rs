@@ -716,21 +716,8 @@ mod tests {
     #[test]
     fn a_tight_budget_races_the_refits_and_the_report_says_so() {
         let dir = std::env::temp_dir().join(format!("pgrd-budget-{}", std::process::id()));
-        let data = concat!(env!("CARGO_MANIFEST_DIR"), "/../fixtures/rope");
-        let fit = crate::cmd_fit::FitArgs {
-            data: data.into(),
-            run: dir.join("run"),
-            population: 2,
-            generations: 1,
-            samples: 1,
-            seed: 0,
-            rescore: 0,
-            rescore_scenes: 0,
-            protocol: ProtocolArg::Paper,
-            bounds: crate::cmd_fit::BoundsArg::Reference,
-            substep: SubstepArg::Auto,
-            quiet: true,
-        };
+        let data = crate::cmd_fit::FIXTURE_ROPE;
+        let fit = crate::cmd_fit::FitArgs::quick_rope_fixture(dir.join("run"));
         crate::cmd_fit::run(&fit).unwrap();
         let diagnose = |out: &str, extra: &[&str]| -> Diagnosis {
             let out = dir.join(out);

@@ -175,6 +175,32 @@ pub fn run(args: &FitArgs) -> anyhow::Result<BackboneFile> {
     Ok(file)
 }
 
+/// The rope fixture, for tests.
+#[cfg(test)]
+pub(crate) const FIXTURE_ROPE: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../fixtures/rope");
+
+#[cfg(test)]
+impl FitArgs {
+    /// The cheapest fit of the rope fixture into `run` (two candidates, one generation, one
+    /// sample), for tests that need a run directory with a backbone.
+    pub(crate) fn quick_rope_fixture(run: PathBuf) -> Self {
+        FitArgs {
+            data: FIXTURE_ROPE.into(),
+            run,
+            population: 2,
+            generations: 1,
+            samples: 1,
+            seed: 0,
+            rescore: 0,
+            rescore_scenes: 0,
+            protocol: ProtocolArg::Paper,
+            bounds: BoundsArg::Reference,
+            substep: SubstepArg::Auto,
+            quiet: true,
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -184,18 +210,8 @@ mod tests {
     fn the_run_records_its_substep_rule_and_older_runs_read_as_auto() {
         let dir = std::env::temp_dir().join(format!("pgrd-fit-substep-{}", std::process::id()));
         let args = FitArgs {
-            data: concat!(env!("CARGO_MANIFEST_DIR"), "/../fixtures/rope").into(),
-            run: dir.clone(),
-            population: 2,
-            generations: 1,
-            samples: 1,
-            seed: 0,
-            rescore: 0,
-            rescore_scenes: 0,
-            protocol: ProtocolArg::Paper,
-            bounds: BoundsArg::Reference,
             substep: SubstepArg::Spectral,
-            quiet: true,
+            ..FitArgs::quick_rope_fixture(dir.clone())
         };
         run(&args).unwrap();
         let path = backbone_path(&dir);

@@ -367,21 +367,8 @@ mod tests {
             train: TrainArgs,
         }
         let dir = std::env::temp_dir().join(format!("pgrd-train-jobs-{}", std::process::id()));
-        let data = concat!(env!("CARGO_MANIFEST_DIR"), "/../fixtures/rope");
-        let fit = crate::cmd_fit::FitArgs {
-            data: data.into(),
-            run: dir.join("one"),
-            population: 2,
-            generations: 1,
-            samples: 1,
-            seed: 0,
-            rescore: 0,
-            rescore_scenes: 0,
-            protocol: crate::common::ProtocolArg::Paper,
-            bounds: crate::cmd_fit::BoundsArg::Reference,
-            substep: crate::common::SubstepArg::Auto,
-            quiet: true,
-        };
+        let data = crate::cmd_fit::FIXTURE_ROPE;
+        let fit = crate::cmd_fit::FitArgs::quick_rope_fixture(dir.join("one"));
         crate::cmd_fit::run(&fit).unwrap();
         std::fs::create_dir_all(dir.join("two")).unwrap();
         std::fs::copy(dir.join("one/backbone.json"), dir.join("two/backbone.json")).unwrap();
