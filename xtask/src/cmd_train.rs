@@ -494,12 +494,9 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
                 });
         }
         if !args.quiet {
-            let line = format!("resuming at step {} from {}", trainer.step, ckpt.display());
-            match &args.progress {
-                // A hidden display (stderr not a terminal) drops its lines.
-                Some((multi, _)) if !multi.is_hidden() => multi.println(line)?,
-                _ => eprintln!("{line}"),
-            }
+            above_bars(bars(args), || {
+                eprintln!("resuming at step {} from {}", trainer.step, ckpt.display())
+            });
         }
     }
     let bar = match (&args.progress, args.quiet) {
@@ -709,9 +706,20 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
 /// Prints a result line on stdout, without tearing the progress bars of candidates training at
 /// once.
 fn say(args: &TrainArgs, line: String) {
-    match &args.progress {
-        Some((multi, _)) => multi.suspend(|| println!("{line}")),
-        None => println!("{line}"),
+    above_bars(bars(args), || println!("{line}"));
+}
+
+/// The display shared by candidates training at once, if this run is one of them.
+fn bars(args: &TrainArgs) -> Option<&indicatif::MultiProgress> {
+    args.progress.as_ref().map(|(multi, _)| multi)
+}
+
+/// Runs `print` with the shared progress bars (if any) cleared, so its line is not torn; it
+/// runs also when the bars are hidden (stderr not a terminal), unlike `MultiProgress::println`.
+pub(crate) fn above_bars(bars: Option<&indicatif::MultiProgress>, print: impl FnOnce()) {
+    match bars {
+        Some(multi) => multi.suspend(print),
+        None => print(),
     }
 }
 

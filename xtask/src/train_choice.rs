@@ -189,18 +189,15 @@ fn train_candidate(
     std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
     copy_atomic(&args.run.join("backbone.json"), &dir.join("backbone.json"))?;
     if !args.quiet {
-        let line = format!(
-            "start {}, bound {bound} m/s ({} of {}) -> {}",
-            start_name(start),
-            k + 1,
-            recipes.len(),
-            dir.display()
-        );
-        match progress {
-            // A hidden display (stderr not a terminal) drops its lines: print them plainly.
-            Some(multi) if !multi.is_hidden() => multi.println(line)?,
-            _ => eprintln!("{line}"),
-        }
+        crate::cmd_train::above_bars(progress, || {
+            eprintln!(
+                "start {}, bound {bound} m/s ({} of {}) -> {}",
+                start_name(start),
+                k + 1,
+                recipes.len(),
+                dir.display()
+            )
+        });
     }
     let mut one = args.clone();
     one.residual_scale = vec![bound];
