@@ -577,6 +577,16 @@ impl Effect for ActuationLag {
 /// under the object's weight), capped at 10⁶ N/m per particle (a kinematic grasp for every
 /// object here), and `F_max = relative_slip_force · W / n` (at 1 the grasp slips at the
 /// object's weight). Resolved in [`Effect::setup`].
+///
+/// A grasp point is set when the grasp first acts in a rollout. Rollouts start in the middle
+/// of recordings, where a compliant grasp holding a lifted object is already stretched by the
+/// weight it carries; starting it unloaded would make the object drop by that stretch. So the
+/// grasp starts carrying the weight of the particles not touching the ground (those more than
+/// 1 cm above it rest on the grasp, the others on the ground), shared by the held particles and
+/// at most `F_max` each: the grasp point starts that stretch above its particle, against
+/// gravity. This is a static estimate from heights alone: a hanging object's grasp starts
+/// with its whole weight, and a thick object lying on the ground with the weight of its
+/// particles higher than 1 cm, which the ground in fact carries (`docs/gap.md`, Candidates).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SlippingGrasp {
     /// Grasp stiffness relative to the object's weight per centimetre (dimensionless).
@@ -587,7 +597,12 @@ pub struct SlippingGrasp {
     stiffness: f32,
     /// Resolved slip force per held particle, N.
     max_force: f32,
+    /// The model's weight per held particle, N.
+    weight_share: f32,
 }
+
+/// Height above the ground below which a particle counts as touching it, m.
+const CONTACT_MARGIN_M: f32 = 0.01;
 
 /// Per-particle grasp stiffness beyond which the grasp is kinematic for every object here, N/m.
 const MAX_GRASP_STIFFNESS_N_PER_M: f32 = 1e6;
@@ -600,6 +615,7 @@ impl SlippingGrasp {
             relative_slip_force,
             stiffness: 0.0,
             max_force: 0.0,
+            weight_share: 0.0,
         }
     }
 }
@@ -612,6 +628,32 @@ struct GraspState {
 impl SlippingGrasp {
     fn damping(&self, mass: f32) -> f32 {
         2.0 * (self.stiffness * mass).sqrt()
+    }
+
+    /// Where a newly attached particle's grasp point sits relative to the particle: above it
+    /// by the stretch that carries its share of the weight off the ground.
+    fn initial_stretch(&self, ctx: &SubstepContext<'_>) -> Vec3A {
+        let config = ctx.backbone.config();
+        let gravity = Vec3A::from(config.gravity);
+        if gravity.length_squared() == 0.0 {
+            return Vec3A::ZERO;
+        }
+        // Particles touching the ground rest on it; the grasp carries the others.
+        let masses = ctx.backbone.masses();
+        let fraction = match config.ground_z {
+            Some(h) => {
+                let free: f32 = ctx
+                    .x
+                    .iter()
+                    .zip(masses)
+                    .filter(|(p, _)| p.z >= h + CONTACT_MARGIN_M)
+                    .map(|(_, m)| *m)
+                    .sum();
+                free / masses.iter().sum::<f32>()
+            }
+            None => 1.0,
+        };
+        -gravity.normalize() * ((fraction * self.weight_share).min(self.max_force) / self.stiffness)
     }
 }
 
@@ -638,6 +680,7 @@ impl Effect for SlippingGrasp {
         self.stiffness =
             (self.relative_stiffness * weight_share / 0.01).min(MAX_GRASP_STIFFNESS_N_PER_M);
         self.max_force = self.relative_slip_force * weight_share;
+        self.weight_share = weight_share;
         if !(self.stiffness > 0.0 && self.max_force > 0.0 && self.max_force.is_finite()) {
             return Err(bad(
                 self.name(),
@@ -676,6 +719,8 @@ impl Effect for SlippingGrasp {
             return;
         };
         let bb = ctx.backbone;
+        // Computed at most once per substep, and only when a particle attaches.
+        let mut stretch = None;
         for (i, h) in bb.held().iter().enumerate() {
             let g = *h as usize;
             if *h < 0 || g >= ctx.grippers.len() {
@@ -686,7 +731,9 @@ impl Effect for SlippingGrasp {
                 continue;
             }
             let grip = Vec3A::from(ctx.grippers[g]);
-            let offset = *st.offsets[i].get_or_insert(ctx.x[i] - grip);
+            let offset = *st.offsets[i].get_or_insert_with(|| {
+                ctx.x[i] - grip + *stretch.get_or_insert_with(|| self.initial_stretch(ctx))
+            });
             let d = grip + offset - ctx.x[i];
             let spring = d * self.stiffness;
             let magnitude = spring.length();

@@ -262,3 +262,63 @@ fn gravity_scale_multiplies_free_fall() {
         );
     }
 }
+
+/// A 12 x 3 strip hanging straight down from its top row, which gripper 0 holds still for
+/// `frames` frames; returns the held particles' mean height at the end, m.
+fn hanging_grasp_height(grasp: Option<Vec<f64>>, frames: usize) -> f32 {
+    let (mut x, mut held) = (Vec::new(), Vec::new());
+    for i in 0..12 {
+        for j in 0..3 {
+            x.push(Vec3::new(0.02 * j as f32, 0.0, 0.4 - 0.02 * i as f32));
+            held.push(if i == 0 { 0 } else { -1 });
+        }
+    }
+    let grip = vec![vec![Vec3::new(0.02, 0.0, 0.4)]; frames + 1];
+    let actions = Actions::new(grip, vec![vec![true]; frames + 1]).unwrap();
+    let effects = grasp
+        .map(|v| vec![Candidate::GraspSlip.effect(&v, &frame(&x))])
+        .unwrap_or_default();
+    let bb = Backbone::with_options(
+        &x,
+        &held,
+        SpringParams {
+            damping: 50.0,
+            ..params()
+        },
+        SimConfig::default(),
+        BackboneOptions {
+            masses: None,
+            effects,
+        },
+    )
+    .unwrap();
+    let state = State {
+        x: x.clone(),
+        v: vec![Vec3::ZERO; x.len()],
+    };
+    let last = bb
+        .rollout(&state, &actions)
+        .unwrap()
+        .positions
+        .pop()
+        .unwrap();
+    let top: Vec<f32> = (0..3).map(|j| last[j].z).collect();
+    top.iter().sum::<f32>() / 3.0
+}
+
+/// Rollouts start in the middle of recordings, where a hanging object's compliant grasp is
+/// already stretched by its weight: the grasp starts loaded, so the held row stays where it
+/// was observed instead of dropping by the stretch (1 cm at relative stiffness 1).
+#[test]
+fn a_hanging_object_starts_with_its_grasp_loaded() {
+    let rigid = hanging_grasp_height(None, 60);
+    let compliant = hanging_grasp_height(Some(vec![1.0, 100.0]), 60);
+    assert!(
+        (compliant - rigid).abs() < 2e-3,
+        "the held row settles {} mm from the rigid grasp's",
+        (compliant - rigid) * 1e3
+    );
+    // A softer grasp (5 cm under the weight) stays there as well, while it never slips.
+    let soft = hanging_grasp_height(Some(vec![0.2, 100.0]), 60);
+    assert!((soft - rigid).abs() < 1e-2, "{} mm", (soft - rigid) * 1e3);
+}
