@@ -263,9 +263,10 @@ fn gravity_scale_multiplies_free_fall() {
     }
 }
 
-/// A 12 x 3 strip hanging straight down from its top row, which gripper 0 holds still for
-/// `frames` frames; returns the held particles' mean height at the end, m.
-fn hanging_grasp_height(grasp: Option<Vec<f64>>, frames: usize) -> f32 {
+/// A 12 x 3 strip hanging straight down from its top row, which gripper 0 holds still for 6 s
+/// (60 frames); returns the held particles' mean height at the end, m.
+fn hanging_grasp_height(grasp: Option<Vec<f64>>) -> f32 {
+    let frames = 60;
     let (mut x, mut held) = (Vec::new(), Vec::new());
     for i in 0..12 {
         for j in 0..3 {
@@ -311,14 +312,14 @@ fn hanging_grasp_height(grasp: Option<Vec<f64>>, frames: usize) -> f32 {
 /// was observed instead of dropping by the stretch (1 cm at relative stiffness 1).
 #[test]
 fn a_hanging_object_starts_with_its_grasp_loaded() {
-    let rigid = hanging_grasp_height(None, 60);
-    let compliant = hanging_grasp_height(Some(vec![1.0, 100.0]), 60);
+    let rigid = hanging_grasp_height(None);
+    let compliant = hanging_grasp_height(Some(vec![1.0, 100.0]));
     assert!(
         (compliant - rigid).abs() < 2e-3,
         "the held row settles {} mm from the rigid grasp's",
         (compliant - rigid) * 1e3
     );
     // A softer grasp (5 cm under the weight) stays there as well, while it never slips.
-    let soft = hanging_grasp_height(Some(vec![0.2, 100.0]), 60);
+    let soft = hanging_grasp_height(Some(vec![0.2, 100.0]));
     assert!((soft - rigid).abs() < 1e-2, "{} mm", (soft - rigid) * 1e3);
 }
