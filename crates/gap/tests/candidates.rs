@@ -263,18 +263,23 @@ fn gravity_scale_multiplies_free_fall() {
     }
 }
 
-/// A 12 x 3 strip hanging straight down from its top row, which gripper 0 holds still for 6 s
-/// (60 frames); returns the held particles' mean height at the end, m.
-fn hanging_grasp_height(grasp: Option<Vec<f64>>) -> f32 {
+/// A 12 x 3 strip hanging straight down from its top row (or lying flat on the ground, 4 mm
+/// up, from its first row), which gripper 0 holds still for 6 s (60 frames); returns the held
+/// particles' mean height at the end, m.
+fn grasp_height(grasp: Option<Vec<f64>>, lying: bool) -> f32 {
     let frames = 60;
     let (mut x, mut held) = (Vec::new(), Vec::new());
     for i in 0..12 {
         for j in 0..3 {
-            x.push(Vec3::new(0.02 * j as f32, 0.0, 0.4 - 0.02 * i as f32));
+            let along = 0.02 * i as f32;
+            x.push(match lying {
+                true => Vec3::new(0.02 * j as f32, along, 0.004),
+                false => Vec3::new(0.02 * j as f32, 0.0, 0.4 - along),
+            });
             held.push(if i == 0 { 0 } else { -1 });
         }
     }
-    let grip = vec![vec![Vec3::new(0.02, 0.0, 0.4)]; frames + 1];
+    let grip = vec![vec![Vec3::new(0.02, 0.0, x[0].z)]; frames + 1];
     let actions = Actions::new(grip, vec![vec![true]; frames + 1]).unwrap();
     let effects = grasp
         .map(|v| vec![Candidate::GraspSlip.effect(&v, &frame(&x))])
@@ -312,14 +317,27 @@ fn hanging_grasp_height(grasp: Option<Vec<f64>>) -> f32 {
 /// was observed instead of dropping by the stretch (1 cm at relative stiffness 1).
 #[test]
 fn a_hanging_object_starts_with_its_grasp_loaded() {
-    let rigid = hanging_grasp_height(None);
-    let compliant = hanging_grasp_height(Some(vec![1.0, 100.0]));
+    let rigid = grasp_height(None, false);
+    let compliant = grasp_height(Some(vec![1.0, 100.0]), false);
     assert!(
         (compliant - rigid).abs() < 2e-3,
         "the held row settles {} mm from the rigid grasp's",
         (compliant - rigid) * 1e3
     );
     // A softer grasp (5 cm under the weight) stays there as well, while it never slips.
-    let soft = hanging_grasp_height(Some(vec![0.2, 100.0]));
+    let soft = grasp_height(Some(vec![0.2, 100.0]), false);
     assert!((soft - rigid).abs() < 1e-2, "{} mm", (soft - rigid) * 1e3);
+}
+
+/// An object lying on the ground rests on it: its grasp starts unloaded, so the held row is
+/// not lifted by the stretch a hanging object's grasp would start with (1 cm here).
+#[test]
+fn a_lying_object_starts_with_its_grasp_unloaded() {
+    let rigid = grasp_height(None, true);
+    let compliant = grasp_height(Some(vec![1.0, 100.0]), true);
+    assert!(
+        (compliant - rigid).abs() < 2e-3,
+        "the held row settles {} mm from the rigid grasp's",
+        (compliant - rigid) * 1e3
+    );
 }
