@@ -8,6 +8,8 @@
 //!   episode and validates shapes, finiteness and index ranges. Every error names the file.
 //! - [`DatasetWriter`] writes episodes and the index atomically (temporary file, then rename).
 //! - [`import`] converts other formats (the DEFORM cable pickles) into this one.
+//! - [`carried_frame`] reads a frame with each occluded point carried from its last sighting
+//!   (a tracker's stored position for a lost point is stale).
 //!
 //! Units: metres, seconds, z up.
 //!
@@ -32,6 +34,7 @@ mod episode;
 mod error;
 pub mod import;
 mod meta;
+mod occlusion;
 
 pub use atomic::write_atomic;
 pub use episode::Episode;
@@ -40,6 +43,7 @@ pub use meta::{
     Dataset, DatasetMeta, DatasetWriter, EpisodeEntry, FORMAT_VERSION, Manipulation, Split,
     Structure,
 };
+pub use occlusion::carried_frame;
 
 /// Result alias for this crate.
 pub type Result<T, E = Error> = std::result::Result<T, E>;
