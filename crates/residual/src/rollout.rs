@@ -52,7 +52,9 @@ impl History {
     }
 
     /// History of `scene` read from its episode: tracked particles take the recorded frames
-    /// `start − 1` and `start − 2` (velocities by finite difference), the rest is extrapolated.
+    /// `start − 1` and `start − 2` as the scene reads them ([`Scene::start_frame`]: occluded
+    /// points carried along, by default), velocities by finite difference; the rest is
+    /// extrapolated.
     pub fn from_episode(scene: &Scene, episode: &Episode, fps: f32) -> Result<Self> {
         let start = scene.window.start;
         if episode.particles() != scene.tracked || start >= episode.frames() {
@@ -64,20 +66,26 @@ impl History {
             )));
         }
         let mut h = Self::extrapolated(&scene.init, 1.0 / fps);
-        let frame = |t: usize| episode.frame(t);
+        // The frames as the scene read its start (occluded points carried, by default).
+        let frame = |t: Option<usize>| t.map(|t| scene.start_frame(episode, t));
+        let (f1, f2, f3) = (
+            frame(start.checked_sub(1)),
+            frame(start.checked_sub(2)),
+            frame(start.checked_sub(3)),
+        );
         for i in 0..scene.tracked {
-            if start >= 1 {
-                h.x[0][i] = frame(start - 1)[i];
+            if let Some(f1) = &f1 {
+                h.x[0][i] = f1[i];
             }
-            if start >= 2 {
-                h.x[1][i] = frame(start - 2)[i];
+            if let Some(f2) = &f2 {
+                h.x[1][i] = f2[i];
                 h.v[0][i] = (h.x[0][i] - h.x[1][i]) * fps;
                 h.v[1][i] = h.v[0][i];
             } else {
                 h.x[1][i] = h.x[0][i] - h.v[0][i] / fps;
             }
-            if start >= 3 {
-                h.v[1][i] = (h.x[1][i] - frame(start - 3)[i]) * fps;
+            if let Some(f3) = &f3 {
+                h.v[1][i] = (h.x[1][i] - f3[i]) * fps;
             }
         }
         Ok(h)

@@ -23,6 +23,12 @@ pub struct SceneConfig {
     pub fill_spacing_factor: f32,
     /// Substep selection used by [`Scene::sim_config`].
     pub substep: Substep,
+    /// Start tracked points that are occluded at the start frame where their surroundings have
+    /// carried them since they were last seen ([`dataset::carried_frame`]), not at the stale
+    /// position a tracker holds for a lost point. Applies to every frame up to the start that a
+    /// model reads ([`Scene::start_frame`]): the start state and the residual network's history.
+    /// On by default since 2026-11-28 (docs/pipelines.md, "Occluded points at the start").
+    pub carry_occluded: bool,
 }
 
 impl Default for SceneConfig {
@@ -32,6 +38,7 @@ impl Default for SceneConfig {
             fill_volume: true,
             fill_spacing_factor: FILL_FACTOR,
             substep: Substep::AUTO,
+            carry_occluded: true,
         }
     }
 }
@@ -58,6 +65,7 @@ pub struct Scene {
     /// Whether each tracked particle was seen at those frames.
     pub visible: Vec<Vec<bool>>,
     config: SimConfig,
+    carry_occluded: bool,
 }
 
 impl Scene {
@@ -77,12 +85,12 @@ impl Scene {
             });
         }
         let fps = meta.fps;
-        let x0 = episode.frame(window.start);
-        let xm = episode.frame(window.start - 1);
-        let v0: Vec<Vec3> = x0.iter().zip(xm).map(|(a, b)| (*a - *b) * fps).collect();
-        let mut x = x0.to_vec();
-        let mut v = v0;
         let mut held = episode.held_or_default(meta.manipulation, meta.gripper_radius);
+        let x0 = read_frame(episode, window.start, &held, config.carry_occluded);
+        let xm = read_frame(episode, window.start - 1, &held, config.carry_occluded);
+        let v0: Vec<Vec3> = x0.iter().zip(&xm).map(|(a, b)| (*a - *b) * fps).collect();
+        let mut x = x0;
+        let mut v = v0;
         match meta.structure {
             Structure::Chain if config.chain_hidden_per_gap > 0 => {
                 let (hx, hv) = densify_chain(&x, &v, config.chain_hidden_per_gap);
@@ -149,7 +157,17 @@ impl Scene {
             truth,
             visible,
             config: sim,
+            carry_occluded: config.carry_occluded,
         })
+    }
+
+    /// Tracked positions of `episode` (this scene's) at frame `t` as this scene reads its
+    /// start: carried through occlusion when [`SceneConfig::carry_occluded`] was set, as stored
+    /// otherwise. Use it for any frame up to the start (e.g. a network's history), so that it
+    /// agrees with [`Scene::init`].
+    pub fn start_frame(&self, episode: &dataset::Episode, t: usize) -> Vec<Vec3> {
+        let held = &self.held[..self.tracked.min(self.held.len())];
+        read_frame(episode, t, held, self.carry_occluded)
     }
 
     /// The simulator settings this scene's dataset implies (step, gravity, ground, grippers).
@@ -221,6 +239,7 @@ impl Scene {
             truth: self.truth[offset..end].to_vec(),
             visible: self.visible[offset..end].to_vec(),
             config: self.config,
+            carry_occluded: self.carry_occluded,
         })
     }
 
@@ -293,9 +312,72 @@ fn mean_velocity_near(x: &[Vec3], v: &[Vec3], p: Vec3, k: usize) -> Vec3 {
     d[..k].iter().map(|(_, i)| v[*i]).sum::<Vec3>() / k as f32
 }
 
+/// Frame `t` of `episode`, carried through occlusion or as stored.
+fn read_frame(episode: &Episode, t: usize, held: &[i32], carry: bool) -> Vec<Vec3> {
+    if carry {
+        dataset::carried_frame(episode, t, held)
+    } else {
+        episode.frame(t).to_vec()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Two held particles rising with their gripper 1 cm per frame; the tracker loses
+    /// particle 1 after frame 1 and keeps its frame-1 position.
+    fn lifted_pair() -> (DatasetMeta, Episode) {
+        let meta = DatasetMeta::new("pair", 10.0, dataset::Manipulation::Grasp);
+        let rise = |t: usize| 0.01 * t as f32 * Vec3::Z;
+        let mut positions = Vec::new();
+        for t in 0..6 {
+            positions.push(Vec3::new(0.0, 0.0, 0.1) + rise(t));
+            positions.push(Vec3::new(0.02, 0.0, 0.1) + rise(t.min(1)));
+        }
+        let grippers = (0..6)
+            .map(|t| Vec3::new(0.01, 0.0, 0.1) + rise(t))
+            .collect();
+        let mut visible = vec![1u8; 12];
+        for t in 2..6 {
+            visible[2 * t + 1] = 0;
+        }
+        let episode = Episode::new(6, 2, 1, positions, grippers)
+            .and_then(|e| e.with_visible(visible))
+            .and_then(|e| e.with_held(vec![0, 0]))
+            .unwrap();
+        (meta, episode)
+    }
+
+    #[test]
+    fn an_occluded_held_point_starts_where_its_gripper_took_it() {
+        let (meta, episode) = lifted_pair();
+        let window = Window { start: 4, steps: 1 };
+        let carried = Scene::new(&meta, &episode, window, &SceneConfig::default()).unwrap();
+        let expected = Vec3::new(0.02, 0.0, 0.14);
+        assert!(
+            (carried.init.x[1] - expected).length() < 1e-6,
+            "{:?}",
+            carried.init.x[1]
+        );
+        assert!(
+            (carried.init.v[1] - 0.1 * Vec3::Z).length() < 1e-5,
+            "{:?}",
+            carried.init.v[1]
+        );
+        assert_eq!(
+            carried.start_frame(&episode, 3)[1],
+            Vec3::new(0.02, 0.0, 0.13)
+        );
+        let stored = SceneConfig {
+            carry_occluded: false,
+            ..SceneConfig::default()
+        };
+        let stale = Scene::new(&meta, &episode, window, &stored).unwrap();
+        assert_eq!(stale.init.x[1], Vec3::new(0.02, 0.0, 0.11));
+        assert_eq!(stale.init.v[1], Vec3::ZERO);
+        assert_eq!(stale.start_frame(&episode, 3), episode.frame(3).to_vec());
+    }
 
     #[test]
     fn chain_hidden_particles_lie_between_markers() {

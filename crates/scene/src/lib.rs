@@ -8,7 +8,9 @@
 //! - [`Scene::new`] builds the simulated object at the start frame: the tracked particles first,
 //!   then hidden particles between the markers of a `chain`, or interior particles filling a
 //!   `volume` ([`SceneConfig`]); which particles are held; the initial velocities by finite
-//!   difference; the gripper actions over the window; the ground truth it will be scored on.
+//!   difference, with points occluded at the start carried from their last sighting
+//!   ([`Scene::start_frame`]); the gripper actions over the window; the ground truth it will be
+//!   scored on.
 //! - [`Scene::rollout`] runs the backbone with given parameters and returns the tracked
 //!   particles' predicted positions per step; [`score_steps`] and [`position_mse`] score them
 //!   against the truth, counting only particles the tracker saw.
