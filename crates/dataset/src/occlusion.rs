@@ -17,7 +17,7 @@ const NEIGHBOURS: usize = 4;
 /// Tracked positions at frame `t` (m), with every point occluded at `t` moved from its last
 /// sighting `s < t` by the motion since `s` of what it moves with:
 /// - a held point (`held[i] = g ≥ 0`) by its gripper's displacement `g(t) − g(s)` (grippers are
-///   exact);
+///   exact), when the gripper stayed closed from `s` to `t` (else as a free point);
 /// - a free point by the mean displacement of the 4 points nearest it at `s` that
 ///   are visible at both `s` and `t`.
 ///
@@ -47,9 +47,11 @@ pub fn carried_frame(episode: &Episode, t: usize, held: &[i32]) -> Vec<Vec3> {
             continue;
         };
         let seen = episode.frame(s)[i];
-        let gripper = held.get(i).copied().unwrap_or(-1);
-        if gripper >= 0 && (gripper as usize) < episode.grippers() {
-            let g = gripper as usize;
+        // A held point follows its gripper only while the gripper stays closed.
+        let gripper = usize::try_from(held.get(i).copied().unwrap_or(-1))
+            .ok()
+            .filter(|&g| g < episode.grippers() && (s..=t).all(|f| episode.closed(f, g)));
+        if let Some(g) = gripper {
             *slot = seen + episode.gripper_frame(t)[g] - episode.gripper_frame(s)[g];
         } else if let Some(shift) = neighbour_shift(episode, i, s, t) {
             *slot = seen + shift;
@@ -118,6 +120,13 @@ mod tests {
             "{:?}",
             f[1]
         );
+    }
+
+    #[test]
+    fn a_point_whose_gripper_opened_moves_with_its_neighbours() {
+        let e = sliding_pair().with_closed(vec![1, 0, 1, 1]).unwrap();
+        let f = carried_frame(&e, 2, &[-1, 0]);
+        assert!((f[1] - (Vec3::Y + Vec3::X)).length() < 1e-6, "{:?}", f[1]);
     }
 
     #[test]
