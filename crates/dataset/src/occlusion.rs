@@ -98,16 +98,16 @@ mod tests {
             .unwrap()
     }
 
+    fn assert_near(got: Vec3, want: Vec3) {
+        assert!((got - want).length() < 1e-6, "{got:?} != {want:?}");
+    }
+
     #[test]
     fn a_free_point_moves_with_its_visible_neighbours() {
         let e = sliding_pair();
         let f = carried_frame(&e, 3, &[-1, -1]);
         assert_eq!(f[0], e.frame(3)[0]);
-        assert!(
-            (f[1] - (Vec3::Y + 1.5 * Vec3::X)).length() < 1e-6,
-            "{:?}",
-            f[1]
-        );
+        assert_near(f[1], Vec3::Y + 1.5 * Vec3::X);
     }
 
     #[test]
@@ -115,18 +115,14 @@ mod tests {
         let e = sliding_pair();
         let f = carried_frame(&e, 2, &[-1, 0]);
         // The gripper rose 2 m along z between frames 0 and 2.
-        assert!(
-            (f[1] - (Vec3::Y + 2.0 * Vec3::Z)).length() < 1e-6,
-            "{:?}",
-            f[1]
-        );
+        assert_near(f[1], Vec3::Y + 2.0 * Vec3::Z);
     }
 
     #[test]
     fn a_point_whose_gripper_opened_moves_with_its_neighbours() {
         let e = sliding_pair().with_closed(vec![1, 0, 1, 1]).unwrap();
         let f = carried_frame(&e, 2, &[-1, 0]);
-        assert!((f[1] - (Vec3::Y + Vec3::X)).length() < 1e-6, "{:?}", f[1]);
+        assert_near(f[1], Vec3::Y + Vec3::X);
     }
 
     #[test]
