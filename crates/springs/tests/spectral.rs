@@ -4,7 +4,6 @@
 mod common;
 
 use glam::Vec3;
-use proptest::prelude::*;
 use springs::{
     Actions, Backbone, Manipulation, PAPER_BOUNDS, REFERENCE_BOUNDS, SimConfig, SpringParams,
     State, Substep,
@@ -174,41 +173,121 @@ fn spectral_substep_is_longer_than_gershgorins_and_respects_the_cap() {
     assert!(spectral.stiffness_eigenvalue(&x[..10]).is_err());
 }
 
-proptest! {
-    #![proptest_config(ProptestConfig::with_cases(48))]
+/// One random scene of the robustness property (`tests/robustness.rs`): parameters anywhere in
+/// the reference CMA-ES box (a quarter of the time the wider "paper" box), a random blob of 5–59
+/// particles dropped, grasped by a gripper that moves at up to 0.5 m/s per axis for 0.4 s and
+/// then opens (or pushes it).
+struct Case {
+    params: SpringParams,
+    x0: Vec<Vec3>,
+    held: Vec<i32>,
+    push: bool,
+    actions: Actions,
+}
 
-    /// The robustness property of `tests/robustness.rs` with the spectral substep: any parameters
-    /// inside the reference CMA-ES box (or the wider "paper" box), a random object dropped,
-    /// grasped and dragged or pushed quickly: finite states, no divergence.
-    #[test]
-    fn spectral_substep_is_stable_within_bounds(seed in any::<u64>(),
-                                                u in prop::array::uniform5(0f64..=1.0),
-                                                n in 5usize..60,
-                                                vel in prop::array::uniform3(-0.5f32..0.5),
-                                                push in any::<bool>(),
-                                                paper in prop::bool::weighted(0.25)) {
-        let params = if paper { PAPER_BOUNDS } else { REFERENCE_BOUNDS }.denormalize(u);
-        let mut rng = common::Rng::new(seed);
-        let x0 = common::blob(&mut rng, n, 0.02, Vec3::new(0.0, 0.0, 0.025));
+impl Case {
+    fn draw(rng: &mut common::Rng) -> Self {
+        let u: [f64; 5] = std::array::from_fn(|_| f64::from(rng.unit()));
+        let n = 5 + (rng.next_u64() % 55) as usize;
+        let vel = rng.vec3(0.5);
+        let push = rng.unit() < 0.5;
+        let paper = rng.unit() < 0.25;
+        let params = if paper {
+            PAPER_BOUNDS
+        } else {
+            REFERENCE_BOUNDS
+        }
+        .denormalize(u);
+        let x0 = common::blob(rng, n, 0.02, Vec3::new(0.0, 0.0, 0.025));
+        Self::new(params, x0, vel, push)
+    }
+
+    fn new(params: SpringParams, x0: Vec<Vec3>, vel: Vec3, push: bool) -> Self {
         let grip = x0[0];
-        let held: Vec<i32> = x0.iter().map(|p| if p.distance(grip) < 0.012 { 0 } else { -1 }).collect();
-        let cfg = SimConfig {
-            manipulation: if push { Manipulation::Push } else { Manipulation::Grasp },
-            gripper_radius: 0.015,
-            substep: Substep::SPECTRAL,
-            ..SimConfig::default()
-        };
-        let bb = Backbone::new(&x0, &held, params, cfg).unwrap();
-        let pos = (0..7).map(|t| vec![grip + Vec3::from(vel) * (0.1 * t as f32)]).collect();
+        let held = x0
+            .iter()
+            .map(|p| if p.distance(grip) < 0.012 { 0 } else { -1 })
+            .collect();
+        let pos = (0..7)
+            .map(|t| vec![grip + vel * (0.1 * t as f32)])
+            .collect();
         let closed = (0..7).map(|t| vec![t < 4]).collect();
         let actions = Actions::new(pos, closed).unwrap();
-        let out = bb.rollout(&State::at_rest(x0.clone()), &actions);
-        prop_assert!(out.is_ok(), "{:?} with {:?}", out.err(), params);
-        let out = out.unwrap();
-        for (x, v) in out.positions.iter().zip(&out.velocities) {
-            prop_assert!(x.iter().chain(v).all(|p| p.is_finite()));
+        Case {
+            params,
+            x0,
+            held,
+            push,
+            actions,
         }
     }
+
+    fn rollout(&self, substep: Substep) -> Result<springs::Rollout, springs::SimError> {
+        let cfg = SimConfig {
+            manipulation: if self.push {
+                Manipulation::Push
+            } else {
+                Manipulation::Grasp
+            },
+            gripper_radius: 0.015,
+            substep,
+            ..SimConfig::default()
+        };
+        let bb = Backbone::new(&self.x0, &self.held, self.params, cfg).unwrap();
+        bb.rollout(&State::at_rest(self.x0.clone()), &self.actions)
+    }
+}
+
+/// The spectral substep is not a bound for every deformed state (docs/physics.md), so unlike
+/// the default rule it is not property-tested for "never diverges": a random search finds rare
+/// scenes that do (below). What it must keep: on a fixed sample of the robustness property's
+/// scenes, every rollout succeeds with finite states.
+#[test]
+fn spectral_substep_is_stable_on_a_fixed_sample_of_random_scenes() {
+    let mut rng = common::Rng::new(41);
+    for case in 0..256 {
+        let scene = Case::draw(&mut rng);
+        let out = scene.rollout(Substep::SPECTRAL);
+        assert!(
+            out.is_ok(),
+            "case {case}: {:?} with {:?}",
+            out.err(),
+            scene.params
+        );
+        let out = out.unwrap();
+        for (x, v) in out.positions.iter().zip(&out.velocities) {
+            assert!(x.iter().chain(v).all(|p| p.is_finite()), "case {case}");
+        }
+    }
+}
+
+/// A scene CI's random search found (2026-11-28) where the spectral substep's margin is not
+/// enough: stiff springs in the "paper" box, the held particles dragged 17 cm below the ground,
+/// then released. The spectral rollout must end in a clean error or finite states, never NaN or
+/// a panic; the default rule, a bound for every state, must succeed.
+#[test]
+fn where_the_spectral_margin_fails_the_error_is_clean_and_the_default_holds() {
+    let params = PAPER_BOUNDS.denormalize([
+        0.0,
+        0.611_911_910_321_941_9,
+        0.326_273_802_062_685_97,
+        0.224_821_533_205_839_53,
+        0.0,
+    ]);
+    let mut rng = common::Rng::new(114_570_572_733_932_989);
+    let x0 = common::blob(&mut rng, 22, 0.02, Vec3::new(0.0, 0.0, 0.025));
+    let scene = Case::new(
+        params,
+        x0,
+        Vec3::new(-0.148_789_42, 0.0, -0.498_367_7),
+        false,
+    );
+    match scene.rollout(Substep::SPECTRAL) {
+        Ok(out) => assert!(out.positions.iter().flatten().all(|p| p.is_finite())),
+        Err(e) => assert!(matches!(e, springs::SimError::Diverged { .. }), "{e:?}"),
+    }
+    let out = scene.rollout(Substep::AUTO).unwrap();
+    assert!(out.positions.iter().flatten().all(|p| p.is_finite()));
 }
 
 /// Adds `f k (l − l0)` along every backbone spring: the springs' own law, `f` times over, so
