@@ -214,10 +214,13 @@ fn compare(g: &Gaussians, cam: &Camera, bg: [f32; 3]) -> (usize, usize) {
                 "alpha ({x}, {y}): {} vs {a}",
                 img.alpha[k]
             );
-            // Depth is a ratio of sums: compare relative to its size.
+            // Depth is the alpha-weighted depth sum over alpha: compare that sum, relative to
+            // the depth's size (dividing by a faint pixel's alpha magnifies f32 rounding; a
+            // random seed found 1.07e-4 at alpha 0.09, and more at 0.03).
             assert!(
-                (img.depth[k] as f64 - d).abs() <= 1e-4 * d.max(1.0),
-                "depth ({x}, {y}): {} vs {d}",
+                (f64::from(img.depth[k]) * f64::from(img.alpha[k]) - d * a).abs()
+                    <= 1e-4 * d.max(1.0),
+                "depth ({x}, {y}): {} vs {d} (alpha {a})",
                 img.depth[k]
             );
         }
@@ -282,8 +285,11 @@ proptest! {
     #[test]
     fn tiled_matches_brute_force_on_random_scenes(s in scene()) {
         let (compared, ambiguous) = compare(&s.g, &s.cam, s.bg);
-        // Ambiguous pixels need a Gaussian within 1e-4 (relative) of a threshold: rare.
-        prop_assert!(ambiguous * 100 <= compared + ambiguous, "{ambiguous} ambiguous of {}", compared + ambiguous);
+        // Ambiguous pixels need a Gaussian within 1e-4 (relative) of a threshold: rare, so at
+        // most 1 % of the pixels, or one pixel in images under 100 pixels (a 48-pixel image
+        // with one such pixel was found on a random seed).
+        let total = compared + ambiguous;
+        prop_assert!(ambiguous <= (total / 100).max(1), "{ambiguous} ambiguous of {total}");
     }
 }
 
