@@ -262,9 +262,9 @@ fn spectral_substep_is_stable_on_a_fixed_sample_of_random_scenes() {
 }
 
 /// A scene CI's random search found (2026-11-28) where the spectral substep's margin is not
-/// enough: stiff springs in the "paper" box, the held particles dragged 17 cm below the ground,
-/// then released. The spectral rollout must end in a clean error or finite states, never NaN or
-/// a panic; the default rule, a bound for every state, must succeed.
+/// enough: stiff springs in the "paper" box, the held particles dragged 12–17 cm below the
+/// ground, then released. The spectral rollout must end in a clean error or finite states,
+/// never NaN or a panic; the default rule, a bound for every state, must succeed.
 #[test]
 fn where_the_spectral_margin_fails_the_error_is_clean_and_the_default_holds() {
     let params = PAPER_BOUNDS.denormalize([
