@@ -568,10 +568,8 @@ impl Effect for ActuationLag {
 }
 
 /// Compliant, slipping grasp: a held particle is tied to its grasp point on the closed gripper
-/// by an undamped spring `k_g`; when the spring force exceeds `F_max` the grasp point slides so
-/// the force stays at `F_max`. (Until session 41 the link also carried a critical damping
-/// `2 √(k_g m)`; the plain link fitted the bench's grasps better with the same verdicts,
-/// `docs/gap.md`, "The undamped link with carried starts".)
+/// by a spring `k_g` with damping `2 √(k_g m)` (critical); when the spring force exceeds
+/// `F_max` the grasp point slides so the force stays at `F_max`.
 ///
 /// Both are given relative to the object, so that one starting guess suits a 5 g sheet and a
 /// 250 g toy: with `W` the model's total weight (Σ m × 9.81 m/s²) shared by its `n` held
@@ -628,6 +626,10 @@ struct GraspState {
 }
 
 impl SlippingGrasp {
+    fn damping(&self, mass: f32) -> f32 {
+        2.0 * (self.stiffness * mass).sqrt()
+    }
+
     /// Where a newly attached particle's grasp point sits relative to the particle: above it
     /// by the stretch that carries its share of the weight off the ground.
     fn initial_stretch(&self, ctx: &SubstepContext<'_>) -> Vec3A {
@@ -693,10 +695,11 @@ impl Effect for SlippingGrasp {
     fn compliant_grasp(&self) -> bool {
         true
     }
-    fn stability(&self, backbone: &Backbone, row: &mut [f32], _damping: &mut [f32]) {
+    fn stability(&self, backbone: &Backbone, row: &mut [f32], damping: &mut [f32]) {
         for (i, h) in backbone.held().iter().enumerate() {
             if *h >= 0 {
                 row[i] += self.stiffness;
+                damping[i] += self.damping(backbone.masses()[i]);
             }
         }
     }
@@ -742,7 +745,8 @@ impl Effect for SlippingGrasp {
             } else {
                 spring
             };
-            force[i] += spring;
+            let rel = Vec3A::from(ctx.gripper_velocities[g]) - ctx.v[i];
+            force[i] += spring + rel * self.damping(bb.masses()[i]);
         }
     }
 }
