@@ -107,7 +107,8 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
         let index = data.split_indices(Split::Val)[0];
         let ep = data.load_episode(index)?;
         let window = Protocol::Paper.window(ep.frames())?;
-        let scene = Scene::new(&data.meta, &ep, window, &SceneConfig::default())?;
+        let config = SceneConfig::default().with_neighbours_of(&data)?;
+        let scene = Scene::new(&data.meta, &ep, window, &config)?;
         let pred = scene.rollout(&fitted.params, &scene.sim_config(), Default::default())?;
         let last = pred.len() - 1;
         write_ply(&run.join("final_predicted.ply"), &pred[last], ep.colors())?;

@@ -272,7 +272,12 @@ pub(crate) fn network_errors(
     use rayon::prelude::*;
     // The network was trained on the run's backbone, under the run's integrator.
     let params = &backbone.params;
-    let val = load_scenes(data, Split::Val, protocol, &backbone.substep.scene_config())?;
+    let val = load_scenes(
+        data,
+        Split::Val,
+        protocol,
+        &backbone.substep.scene_config(data)?,
+    )?;
     let mde = |scene: &Scene, pred: &[Vec<glam::Vec3>]| -> anyhow::Result<f64> {
         let e = scene::score_steps(scene, pred, false)?;
         Ok(100.0 * e.iter().map(|x| x.mde).sum::<f64>() / e.len().max(1) as f64)

@@ -124,7 +124,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
         &data,
         args.split,
         protocol,
-        &backbone.substep.scene_config(),
+        &backbone.substep.scene_config(&data)?,
     )?;
     let net = read_residual(&args.run)?;
     let model_name = if net.is_some() {

@@ -406,7 +406,7 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
         &data,
         Split::Train,
         &backbone.params,
-        &backbone.substep.scene_config(),
+        &backbone.substep.scene_config(&data)?,
         args.protocol.into(),
         options,
     )

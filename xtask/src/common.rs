@@ -43,12 +43,19 @@ pub enum SubstepArg {
 }
 
 impl SubstepArg {
-    /// The scene settings with this substep.
-    pub fn scene_config(self) -> SceneConfig {
-        SceneConfig {
+    /// The scene settings with this substep, with unseen start points placed by the material
+    /// neighbours learned from `data`'s training split.
+    pub fn scene_config(self, data: &Dataset) -> anyhow::Result<SceneConfig> {
+        let config = SceneConfig {
             substep: self.substep(),
             ..SceneConfig::default()
-        }
+        };
+        config.with_neighbours_of(data).with_context(|| {
+            format!(
+                "learning the material neighbours of {}",
+                data.root.display()
+            )
+        })
     }
 
     /// The simulator's substep rule.
@@ -105,10 +112,12 @@ pub fn scenes(
     protocol: Protocol,
     substep: SubstepArg,
 ) -> anyhow::Result<Vec<Scene>> {
-    Ok(load_scenes(data, split, protocol, &substep.scene_config())?
-        .into_iter()
-        .map(|(_, s)| s)
-        .collect())
+    Ok(
+        load_scenes(data, split, protocol, &substep.scene_config(data)?)?
+            .into_iter()
+            .map(|(_, s)| s)
+            .collect(),
+    )
 }
 
 /// The fitted backbone of a run: `<run>/backbone.json`.

@@ -9,7 +9,8 @@
 //! - [`DatasetWriter`] writes episodes and the index atomically (temporary file, then rename).
 //! - [`import`] converts other formats (the DEFORM cable pickles) into this one.
 //! - [`carried_frame`] reads a frame with each occluded point carried from its last sighting
-//!   (a tracker's stored position for a lost point is stale).
+//!   (a tracker's stored position for a lost point is stale); [`MaterialNeighbours`] places the
+//!   points not seen at all yet, from the neighbours they keep across the training recordings.
 //!
 //! Units: metres, seconds, z up.
 //!
@@ -34,6 +35,7 @@ mod episode;
 mod error;
 pub mod import;
 mod meta;
+mod neighbours;
 mod occlusion;
 
 pub use atomic::write_atomic;
@@ -43,6 +45,7 @@ pub use meta::{
     Dataset, DatasetMeta, DatasetWriter, EpisodeEntry, FORMAT_VERSION, Manipulation, Split,
     Structure,
 };
+pub use neighbours::{MaterialNeighbours, PLACING_NEIGHBOURS};
 pub use occlusion::carried_frame;
 
 /// Result alias for this crate.

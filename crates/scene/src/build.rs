@@ -1,4 +1,6 @@
-use dataset::{DatasetMeta, Episode, Structure};
+use std::sync::Arc;
+
+use dataset::{Dataset, DatasetMeta, Episode, MaterialNeighbours, Split, Structure};
 use glam::Vec3;
 use springs::{Actions, Backbone, BackboneOptions, SimConfig, SpringParams, State, Substep};
 
@@ -29,6 +31,28 @@ pub struct SceneConfig {
     /// model reads ([`Scene::start_frame`]): the start state and the residual network's history.
     /// On by default since 2026-11-28 (docs/pipelines.md, "Occluded points at the start").
     pub carry_occluded: bool,
+    /// Where to start tracked points not seen at any frame up to the start (neither visible nor
+    /// carried): at the centroid of their material neighbours
+    /// ([`dataset::MaterialNeighbours::place_unseen`], learned from the dataset's training
+    /// split), instead of the tracker's stale report. `None` keeps the stored positions. Callers
+    /// that have the dataset set it with [`SceneConfig::with_neighbours_of`] (every `cargo
+    /// xtask` pipeline does, since 2026-11-28: docs/pipelines.md, "Occluded points at the
+    /// start").
+    pub unseen: Option<Arc<MaterialNeighbours>>,
+}
+
+impl SceneConfig {
+    /// This configuration with [`SceneConfig::unseen`] learned from `data`'s training split
+    /// (left `None` when the split is empty or its episodes disagree on the particle count).
+    pub fn with_neighbours_of(mut self, data: &Dataset) -> Result<Self, SceneError> {
+        let episodes = data
+            .split_indices(Split::Train)
+            .into_iter()
+            .map(|i| data.load_episode(i))
+            .collect::<Result<Vec<_>, _>>()?;
+        self.unseen = MaterialNeighbours::learn(&episodes).map(Arc::new);
+        Ok(self)
+    }
 }
 
 impl Default for SceneConfig {
@@ -39,6 +63,7 @@ impl Default for SceneConfig {
             fill_spacing_factor: FILL_FACTOR,
             substep: Substep::AUTO,
             carry_occluded: true,
+            unseen: None,
         }
     }
 }
@@ -66,6 +91,7 @@ pub struct Scene {
     pub visible: Vec<Vec<bool>>,
     config: SimConfig,
     carry_occluded: bool,
+    unseen: Option<Arc<MaterialNeighbours>>,
 }
 
 impl Scene {
@@ -86,8 +112,25 @@ impl Scene {
         }
         let fps = meta.fps;
         let mut held = episode.held_or_default(meta.manipulation, meta.gripper_radius);
-        let x0 = read_frame(episode, window.start, &held, config.carry_occluded);
-        let xm = read_frame(episode, window.start - 1, &held, config.carry_occluded);
+        if let Some(table) = &config.unseen
+            && table.particles() != episode.particles()
+        {
+            return Err(SceneError::NeighboursMismatch {
+                table: table.particles(),
+                particles: episode.particles(),
+            });
+        }
+        let read = |t| {
+            read_frame(
+                episode,
+                t,
+                &held,
+                config.carry_occluded,
+                config.unseen.as_deref(),
+            )
+        };
+        let x0 = read(window.start);
+        let xm = read(window.start - 1);
         let v0: Vec<Vec3> = x0.iter().zip(&xm).map(|(a, b)| (*a - *b) * fps).collect();
         let mut x = x0;
         let mut v = v0;
@@ -158,6 +201,7 @@ impl Scene {
             visible,
             config: sim,
             carry_occluded: config.carry_occluded,
+            unseen: config.unseen.clone(),
         })
     }
 
@@ -167,7 +211,13 @@ impl Scene {
     /// agrees with [`Scene::init`].
     pub fn start_frame(&self, episode: &dataset::Episode, t: usize) -> Vec<Vec3> {
         let held = &self.held[..self.tracked.min(self.held.len())];
-        read_frame(episode, t, held, self.carry_occluded)
+        read_frame(
+            episode,
+            t,
+            held,
+            self.carry_occluded,
+            self.unseen.as_deref(),
+        )
     }
 
     /// The simulator settings this scene's dataset implies (step, gravity, ground, grippers).
@@ -240,6 +290,7 @@ impl Scene {
             visible: self.visible[offset..end].to_vec(),
             config: self.config,
             carry_occluded: self.carry_occluded,
+            unseen: self.unseen.clone(),
         })
     }
 
@@ -312,13 +363,24 @@ fn mean_velocity_near(x: &[Vec3], v: &[Vec3], p: Vec3, k: usize) -> Vec3 {
     d[..k].iter().map(|(_, i)| v[*i]).sum::<Vec3>() / k as f32
 }
 
-/// Frame `t` of `episode`, carried through occlusion or as stored.
-fn read_frame(episode: &Episode, t: usize, held: &[i32], carry: bool) -> Vec<Vec3> {
-    if carry {
+/// Frame `t` of `episode`, carried through occlusion or as stored, then with the points not seen
+/// up to `t` placed by their material neighbours when `unseen` is given.
+fn read_frame(
+    episode: &Episode,
+    t: usize,
+    held: &[i32],
+    carry: bool,
+    unseen: Option<&MaterialNeighbours>,
+) -> Vec<Vec3> {
+    let mut frame = if carry {
         dataset::carried_frame(episode, t, held)
     } else {
         episode.frame(t).to_vec()
+    };
+    if let Some(table) = unseen {
+        table.place_unseen(episode, t, &mut frame);
     }
+    frame
 }
 
 #[cfg(test)]
@@ -377,6 +439,75 @@ mod tests {
         assert_eq!(stale.init.x[1], Vec3::new(0.02, 0.0, 0.11));
         assert_eq!(stale.init.v[1], Vec3::ZERO);
         assert_eq!(stale.start_frame(&episode, 3), episode.frame(3).to_vec());
+    }
+
+    /// Three points in a row 1 cm apart rising 1 cm per frame, over `frames` frames; point 2 is
+    /// lost in `lost` frames and stored 30 cm away there.
+    fn rising_row(frames: usize, lost: std::ops::Range<usize>) -> Episode {
+        let mut positions = Vec::new();
+        let mut visible = Vec::new();
+        for t in 0..frames {
+            for i in 0..3 {
+                let seen = i != 2 || !lost.contains(&t);
+                let p = Vec3::new(0.01 * i as f32, 0.0, 0.1 + 0.01 * t as f32);
+                positions.push(if seen { p } else { Vec3::new(0.3, 0.0, 0.1) });
+                visible.push(u8::from(seen));
+            }
+        }
+        Episode::new(
+            frames,
+            3,
+            1,
+            positions,
+            vec![Vec3::new(0.0, 0.5, 0.5); frames],
+        )
+        .and_then(|e| e.with_visible(visible))
+        .and_then(|e| e.with_held(vec![-1; 3]))
+        .unwrap()
+    }
+
+    #[test]
+    fn a_point_never_seen_starts_among_its_material_neighbours() {
+        let meta = DatasetMeta::new("row", 10.0, dataset::Manipulation::Grasp);
+        let table = MaterialNeighbours::learn([&rising_row(8, 0..0)]).unwrap();
+        let config = SceneConfig {
+            fill_volume: false,
+            unseen: Some(Arc::new(table)),
+            ..SceneConfig::default()
+        };
+        let episode = rising_row(6, 0..3);
+        let window = Window { start: 2, steps: 2 };
+        let scene = Scene::new(&meta, &episode, window, &config).unwrap();
+        // Points 1 and 0 are its neighbours; their centroid, moving with them.
+        let want = Vec3::new(0.005, 0.0, 0.12);
+        assert!(
+            (scene.init.x[2] - want).length() < 1e-6,
+            "{:?}",
+            scene.init.x[2]
+        );
+        assert!((scene.init.v[2] - 0.1 * Vec3::Z).length() < 1e-5);
+        assert!((scene.start_frame(&episode, 1)[2] - want + 0.01 * Vec3::Z).length() < 1e-6);
+        // Without the table the stale report stays, and the point starts at rest.
+        let stale = SceneConfig {
+            unseen: None,
+            ..config.clone()
+        };
+        let scene = Scene::new(&meta, &episode, window, &stale).unwrap();
+        assert_eq!(scene.init.x[2], Vec3::new(0.3, 0.0, 0.1));
+        assert_eq!(scene.init.v[2], Vec3::ZERO);
+        // A table for other points is refused.
+        let four = Episode::new(1, 4, 1, vec![Vec3::ZERO; 4], vec![Vec3::ZERO]).unwrap();
+        let wrong = SceneConfig {
+            unseen: MaterialNeighbours::learn([&four]).map(Arc::new),
+            ..config
+        };
+        assert!(matches!(
+            Scene::new(&meta, &episode, window, &wrong),
+            Err(SceneError::NeighboursMismatch {
+                table: 4,
+                particles: 3
+            })
+        ));
     }
 
     #[test]

@@ -20,6 +20,17 @@ pub enum SceneError {
         /// Protocol name.
         protocol: &'static str,
     },
+    /// The material-neighbour table was learned on another particle count.
+    #[error(
+        "the material-neighbour table covers {table} tracked points, the episode has {particles}: \
+         every episode of a dataset must track the same points"
+    )]
+    NeighboursMismatch {
+        /// Points in the table.
+        table: usize,
+        /// Tracked points in the episode.
+        particles: usize,
+    },
     /// The prediction does not match the scene's window.
     #[error("prediction has {got} steps of {particles} particles, expected {steps} steps")]
     PredictionShape {
