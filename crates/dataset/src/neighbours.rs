@@ -139,8 +139,13 @@ fn candidate_pairs(samples: &[(&Episode, usize)], n: usize) -> Vec<Vec<u32>> {
         let frame = episode.frame(t);
         let visible: Vec<usize> = (0..n).filter(|&i| episode.visible(t, i)).collect();
         let mut tree: KdTree<f32, 3> = KdTree::new();
+        // The tree refuses (panics on) more than a bucket of items at one point; a point that
+        // repeats another's exact position adds nothing to a neighbourhood search anyway.
+        let mut placed = std::collections::HashSet::new();
         for &i in &visible {
-            tree.add(&frame[i].to_array(), i as u64);
+            if placed.insert(frame[i].to_array().map(f32::to_bits)) {
+                tree.add(&frame[i].to_array(), i as u64);
+            }
         }
         for &i in &visible {
             for hit in
@@ -236,6 +241,14 @@ mod tests {
         assert!((frame[5] - want).length() < 1e-6, "{:?}", frame[5]);
         assert_eq!(frame[6], episode.frame(2)[6]);
         assert_eq!(frame[0], episode.frame(2)[0]);
+    }
+
+    #[test]
+    fn many_points_at_one_place_are_no_error() {
+        // A tracker that reports 40 points at the origin in every frame.
+        let episode = Episode::new(4, 40, 1, vec![Vec3::ZERO; 160], vec![Vec3::ZERO; 4]).unwrap();
+        let table = MaterialNeighbours::learn([&episode]).unwrap();
+        assert_eq!(table.particles(), 40);
     }
 
     #[test]
