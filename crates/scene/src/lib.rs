@@ -9,8 +9,9 @@
 //!   then hidden particles between the markers of a `chain`, or interior particles filling a
 //!   `volume` ([`SceneConfig`]); which particles are held; the initial velocities by finite
 //!   difference, with points occluded at the start carried from their last sighting
-//!   ([`Scene::start_frame`]); the gripper actions over the window; the ground truth it will be
-//!   scored on.
+//!   ([`Scene::start_frame`]) and points not seen at all yet placed among their material
+//!   neighbours ([`SceneConfig::with_neighbours_of`]); the gripper actions over the window; the
+//!   ground truth it will be scored on.
 //! - [`Scene::rollout`] runs the backbone with given parameters and returns the tracked
 //!   particles' predicted positions per step; [`score_steps`] and [`position_mse`] score them
 //!   against the truth, counting only particles the tracker saw.
