@@ -8,7 +8,7 @@
 //! the rest, its neighbours on the object say where it is: tracked point `i` is the same material
 //! point in every episode of a dataset (the format's contract, `docs/data-format.md`), so the
 //! points that stay close to it across the training recordings are its material neighbours, and
-//! their centroid is a better guess than the stale report.
+//! their centroid is usually a far better guess than the stale report (docs/pipelines.md).
 
 use glam::Vec3;
 use kiddo::{KdTree, SquaredEuclidean};
