@@ -158,12 +158,23 @@ fn candidate_pairs(samples: &[(&Episode, usize)], n: usize) -> Vec<Vec<u32>> {
                 }
             }
         }
+        // The same neighbours come back frame after frame; compact long lists as they grow so
+        // memory follows the distinct candidates, not the number of sampled frames.
+        for c in cands.iter_mut().filter(|c| c.len() > COMPACT_AT) {
+            compact(c);
+        }
     }
-    for c in &mut cands {
-        c.sort_unstable();
-        c.dedup();
-    }
+    cands.iter_mut().for_each(compact);
     cands
+}
+
+/// Candidate-list length past which it is sorted and deduplicated during learning.
+const COMPACT_AT: usize = 1024;
+
+/// Sorts `c` and drops repeats.
+fn compact(c: &mut Vec<u32>) {
+    c.sort_unstable();
+    c.dedup();
 }
 
 /// Mean distance of points `i` and `j` over the sampled frames where both were visible, when
