@@ -1,7 +1,10 @@
+use std::num::NonZeroUsize;
 use std::sync::Arc;
 
 use dataset::{Dataset, DatasetMeta, Episode, MaterialNeighbours, Split, Structure};
 use glam::Vec3;
+use kiddo::SquaredEuclidean;
+use kiddo::immutable::float::kdtree::ImmutableKdTree;
 use springs::{Actions, Backbone, BackboneOptions, SimConfig, SpringParams, State, Substep};
 
 use crate::{SceneError, Window};
@@ -332,15 +335,19 @@ fn densify_chain(x: &[Vec3], v: &[Vec3], per_gap: usize) -> (Vec<Vec3>, Vec<Vec3
 }
 
 /// Median distance from each point to its nearest neighbour, m (the interior fill spacing).
+///
+/// The immutable tree, because kiddo's mutable one panics once more than a bucket's worth of
+/// points share one position (a tracker that reports many points at one place).
 fn median_spacing(x: &[Vec3]) -> f32 {
-    let mut tree = kiddo::KdTree::<f32, 3>::new();
-    for (i, p) in x.iter().enumerate() {
-        tree.add(&p.to_array(), i as u64);
+    if x.len() < 2 {
+        return 0.0;
     }
-    let mut d: Vec<f32> = x
+    let pts: Vec<[f32; 3]> = x.iter().map(|p| p.to_array()).collect();
+    let tree: ImmutableKdTree<f32, u32, 3, 32> = ImmutableKdTree::new_from_slice(&pts);
+    let mut d: Vec<f32> = pts
         .iter()
         .map(|p| {
-            let n = tree.nearest_n::<kiddo::SquaredEuclidean>(&p.to_array(), 2);
+            let n = tree.nearest_n::<SquaredEuclidean>(p, NonZeroUsize::MIN.saturating_add(1));
             n.get(1).map_or(0.0, |n| n.distance.sqrt())
         })
         .collect();
@@ -525,5 +532,14 @@ mod tests {
     fn median_spacing_of_a_line() {
         let x: Vec<Vec3> = (0..10).map(|i| Vec3::X * (i as f32 * 0.02)).collect();
         assert!((median_spacing(&x) - 0.02).abs() < 1e-6);
+    }
+
+    #[test]
+    fn median_spacing_survives_many_points_at_one_place() {
+        // 40 coincident reports, more than one tree bucket holds, beside a 2 cm line.
+        let mut x = vec![Vec3::new(0.3, 0.1, 0.2); 40];
+        x.extend((0..60).map(|i| Vec3::X * (i as f32 * 0.02)));
+        assert!((median_spacing(&x) - 0.02).abs() < 1e-6);
+        assert_eq!(median_spacing(&x[..1]), 0.0);
     }
 }

@@ -106,6 +106,24 @@ fn chain_and_cap() {
 }
 
 #[test]
+fn many_coincident_points() {
+    // A tracker can report many points at one place; more than a k-d tree bucket's worth (32)
+    // must still build, and by the same rule (zero-length springs are allowed).
+    let mut x = vec![Vec3::new(0.01, 0.02, 0.0); 40];
+    x.extend((0..30).map(|i| Vec3::X * (i as f32 * 0.004)));
+    for max_springs in [3, 50] {
+        let topo = Topology::build(&x, 0.01, max_springs).unwrap();
+        let got: Vec<([u32; 2], f32)> = topo
+            .springs
+            .iter()
+            .copied()
+            .zip(topo.rest_lengths.iter().copied())
+            .collect();
+        assert_eq!(got, brute_force(&x, 0.01, max_springs));
+    }
+}
+
+#[test]
 fn bad_input() {
     let x = vec![Vec3::ZERO, Vec3::X];
     assert!(matches!(
