@@ -17,6 +17,9 @@ use std::num::NonZeroUsize;
 
 use dataset::{Dataset, Split};
 use glam::Vec3;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::StandardNormal;
 use scene::{Protocol, Scene, SceneConfig, score_steps};
 
 type Error = Box<dyn std::error::Error>;
@@ -90,10 +93,11 @@ fn main() -> Result<(), Error> {
         let mut mde = vec![Vec::with_capacity(draws.get()); scenes.len()];
         for draw in 0..draws.get() {
             for (e, scene) in scenes.iter().enumerate() {
-                let mut rng = SplitMix::new((draw as u64) << 32 | e as u64);
+                let mut rng = ChaCha8Rng::seed_from_u64((draw as u64) << 32 | e as u64);
                 let mut moved = scene.clone();
                 for x in &mut moved.init.x {
-                    *x += rng.gaussian3() * (sigma_mm / 1000.0);
+                    let n: [f32; 3] = std::array::from_fn(|_| rng.sample(StandardNormal));
+                    *x += Vec3::from_array(n) * (sigma_mm / 1000.0);
                 }
                 mde[e].push(episode_mde(&moved)?);
             }
@@ -117,34 +121,4 @@ fn main() -> Result<(), Error> {
         );
     }
     Ok(())
-}
-
-/// SplitMix64 with Box–Muller: a seeded, dependency-free normal sampler.
-struct SplitMix(u64);
-
-impl SplitMix {
-    fn new(seed: u64) -> Self {
-        SplitMix(seed ^ 0x9E37_79B9_7F4A_7C15)
-    }
-
-    fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-
-    /// Uniform in (0, 1].
-    fn unit(&mut self) -> f32 {
-        ((self.next_u64() >> 40) as f32 + 1.0) / (1u64 << 24) as f32
-    }
-
-    fn gaussian3(&mut self) -> Vec3 {
-        let mut normal = || {
-            let (u, v) = (self.unit(), self.unit());
-            (-2.0 * u.ln()).sqrt() * (std::f32::consts::TAU * v).cos()
-        };
-        Vec3::new(normal(), normal(), normal())
-    }
 }
