@@ -344,10 +344,12 @@ fn median_spacing(x: &[Vec3]) -> f32 {
     }
     let pts: Vec<[f32; 3]> = x.iter().map(|p| p.to_array()).collect();
     let tree: ImmutableKdTree<f32, u32, 3, 32> = ImmutableKdTree::new_from_slice(&pts);
+    // The point itself and its nearest other point.
+    let two = NonZeroUsize::new(2).expect("2 is non-zero");
     let mut d: Vec<f32> = pts
         .iter()
         .map(|p| {
-            let n = tree.nearest_n::<SquaredEuclidean>(p, NonZeroUsize::MIN.saturating_add(1));
+            let n = tree.nearest_n::<SquaredEuclidean>(p, two);
             n.get(1).map_or(0.0, |n| n.distance.sqrt())
         })
         .collect();
