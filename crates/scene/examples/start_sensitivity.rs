@@ -9,9 +9,10 @@
 //! the run's plain backbone is rolled out from the scene's start, then again `draws` times with
 //! every simulated particle's start position displaced by an independent N(0, σ²) per axis
 //! (seeded, start velocities kept; the springs are built from the displaced positions, so the
-//! displaced start is at rest, as a differently tracked start would be). It prints the val MDE
-//! of each draw, their spread, and the per-episode spread: how finely a row of the results can
-//! be read when the start is known to about σ.
+//! displaced start is at rest, as a differently tracked start would be). Per σ it prints the
+//! draws' mean val MDE, its spread over draws (standard deviation, min..max) and the per-episode
+//! spread: how finely a row of the results can be read when the start is known to about σ.
+//! Defaults: σ = 0.5, 1, 2 mm, 8 draws.
 
 use std::num::NonZeroUsize;
 
@@ -37,7 +38,7 @@ fn main() -> Result<(), Error> {
             .map(str::parse)
             .collect::<Result<_, _>>()
             .map_err(|e| format!("sigma list {s}: {e}; {USAGE}"))?,
-        None => vec![1.0, 2.0, 5.0],
+        None => vec![0.5, 1.0, 2.0],
     };
     let draws: NonZeroUsize = match args.get(3) {
         Some(d) => d.parse().map_err(|e| format!("draws {d}: {e}; {USAGE}"))?,
