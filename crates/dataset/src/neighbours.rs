@@ -11,7 +11,10 @@
 //! their centroid is usually a far better guess than the stale report (docs/pipelines.md).
 
 use glam::Vec3;
-use kiddo::{KdTree, SquaredEuclidean};
+use std::num::NonZeroUsize;
+
+use kiddo::SquaredEuclidean;
+use kiddo::immutable::float::kdtree::ImmutableKdTree;
 
 use crate::Episode;
 
@@ -135,23 +138,17 @@ fn sampled_frames(frames: usize) -> impl Iterator<Item = usize> {
 /// sampled frame; sorted, without repeats.
 fn candidate_pairs(samples: &[(&Episode, usize)], n: usize) -> Vec<Vec<u32>> {
     let mut cands: Vec<Vec<u32>> = vec![Vec::new(); n];
+    // The point itself comes back first.
+    let query = NonZeroUsize::new(CANDIDATES_PER_FRAME + 1).expect("at least one");
     for &(episode, t) in samples {
         let frame = episode.frame(t);
         let visible: Vec<usize> = (0..n).filter(|&i| episode.visible(t, i)).collect();
-        let mut tree: KdTree<f32, 3> = KdTree::new();
-        // The tree refuses (panics on) more than a bucket of items at one point; a point that
-        // repeats another's exact position adds nothing to a neighbourhood search anyway.
-        let mut placed = std::collections::HashSet::new();
-        for &i in &visible {
-            if placed.insert(frame[i].to_array().map(f32::to_bits)) {
-                tree.add(&frame[i].to_array(), i as u64);
-            }
-        }
-        for &i in &visible {
-            for hit in
-                tree.nearest_n::<SquaredEuclidean>(&frame[i].to_array(), CANDIDATES_PER_FRAME + 1)
-            {
-                let j = hit.item as usize;
+        // The immutable tree: kiddo's mutable one panics past a bucket of points at one position.
+        let pts: Vec<[f32; 3]> = visible.iter().map(|&i| frame[i].to_array()).collect();
+        let tree: ImmutableKdTree<f32, u32, 3, 32> = ImmutableKdTree::new_from_slice(&pts);
+        for (&i, p) in visible.iter().zip(&pts) {
+            for hit in tree.nearest_n::<SquaredEuclidean>(p, query) {
+                let j = visible[hit.item as usize];
                 if j != i {
                     cands[i].push(j as u32);
                     cands[j].push(i as u32);
