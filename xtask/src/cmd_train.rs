@@ -193,6 +193,12 @@ pub struct TrainArgs {
     /// averaged network instead of the last iterate.
     #[arg(long, default_value_t = 0.0)]
     pub ema_decay: f64,
+    /// Score the backbone alone on the training segments every this many optimiser steps (the
+    /// yardstick of `train.json`'s `backbone_loss` and the printed "x the backbone's" ratios,
+    /// which compare the steps that have it; 0: never, 1: every step). Each scoring costs a
+    /// second backbone rollout per segment; nothing learned depends on it.
+    #[arg(long, default_value_t = 10)]
+    pub yardstick_every: usize,
     /// Start from the weights of this network (a `residual.safetensors` with its
     /// `residual.json` beside it) instead of a fresh initialisation, e.g. to fine-tune a
     /// network trained on 5-step segments on whole windows. Its configuration must match the
@@ -443,6 +449,7 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
             SimGradientArg::Adjoint => SimGradient::Adjoint,
         },
         ema_decay: args.ema_decay,
+        yardstick_every: args.yardstick_every,
     };
     let unit = train_cfg.loss.unit();
     let resuming = args.run.join("train_ckpt.safetensors").exists() && !args.restart;
@@ -669,7 +676,7 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
     say(
         args,
         format!(
-            "pgrd ({}) on {}: {} steps, {} loss {:.4} -> {:.4} {unit} (mean of first/last 20), {:.3} -> {:.3} x the backbone's on the same segments (first/last {k}), {} diverged rollouts, {:.1} s -> {}",
+            "pgrd ({}) on {}: {} steps, {} loss {:.4} -> {:.4} {unit} (mean of first/last 20), {:.3} -> {:.3} x the backbone's on the same segments (first/last {k} steps, scored every {}), {} diverged rollouts, {:.1} s -> {}",
             trainer.net.config().variant(),
             data.meta.object,
             trainer.step,
@@ -678,6 +685,7 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
             mean(&last),
             loss_ratio(&loss, &base_loss, 0..k),
             loss_ratio(&loss, &base_loss, loss.len() - k..loss.len()),
+            train_cfg.yardstick_every,
             diverged_rollouts,
             prior_wall + t_train.elapsed().as_secs_f64(),
             report_path.display()

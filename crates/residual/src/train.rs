@@ -67,6 +67,16 @@ pub struct TrainConfig {
     /// evaluates: the average damps the step-to-step jumps of single Adam iterates.
     #[serde(default)]
     pub ema_decay: f64,
+    /// Score the backbone alone on the optimiser step's segments (the yardstick
+    /// [`StepStats::backbone_loss`]) every this many steps, from step 0 (0: never). It costs a
+    /// second backbone rollout per segment (4-20 % of a step, docs/BENCHMARKS.md) and changes
+    /// nothing that is learned. Configurations written before this option scored every step.
+    #[serde(default = "every_step")]
+    pub yardstick_every: usize,
+}
+
+fn every_step() -> usize {
+    1
 }
 
 /// The state a training segment starts from.
@@ -109,6 +119,7 @@ impl Default for TrainConfig {
             loss: TrainLoss::Mse,
             sim_gradient: SimGradient::Detached,
             ema_decay: 0.0,
+            yardstick_every: 10,
         }
     }
 }
@@ -445,7 +456,8 @@ pub struct StepStats {
     pub loss: f64,
     /// Mean loss of the backbone alone on the same segments (same start, no residual), in the
     /// same unit: `loss / backbone_loss` below 1 means the network improves on the backbone
-    /// where it is trained. NaN when no segment was scored.
+    /// where it is trained. NaN when no segment was scored, and on the steps
+    /// [`TrainConfig::yardstick_every`] skips.
     pub backbone_loss: f64,
     /// Gradient norm before clipping.
     pub grad_norm: f64,
@@ -556,6 +568,8 @@ impl Trainer {
         let mut total: Option<Tensor> = None;
         let (mut used, mut diverged) = (0usize, 0usize);
         let (mut base_sum, mut base_n) = (0.0, 0usize);
+        let yardstick =
+            self.cfg.yardstick_every > 0 && self.step.is_multiple_of(self.cfg.yardstick_every);
         for sample in samples {
             let mut curves = [0usize, 1, 2, 3];
             for i in (1..curves.len()).rev() {
@@ -584,13 +598,14 @@ impl Trainer {
                         None => l,
                     });
                     used += 1;
-                    let base = backbone_loss(
-                        set.backbone(sample),
-                        &sample.scene,
-                        self.cfg.rollout_steps,
-                        self.cfg.loss,
-                    )?;
-                    if let Some(b) = base {
+                    if yardstick
+                        && let Some(b) = backbone_loss(
+                            set.backbone(sample),
+                            &sample.scene,
+                            self.cfg.rollout_steps,
+                            self.cfg.loss,
+                        )?
+                    {
                         base_sum += b;
                         base_n += 1;
                     }

@@ -48,6 +48,7 @@ fn training_reduces_the_loss() {
         lr: 3e-3,
         decay_steps: 70,
         seed: 2,
+        yardstick_every: 1,
         ..TrainConfig::default()
     };
     let model = ModelConfig {
@@ -421,4 +422,61 @@ fn recorded_starts_on_a_filled_volume_run_in_their_own_springs() {
             .fold(0f32, |m, (a, b)| m.max(a.distance(*b)));
         assert!(worst < 1e-6, "springs built elsewhere: {worst} m off");
     }
+}
+
+/// The backbone yardstick is scored on the steps `yardstick_every` names and on no others, and
+/// nothing learned depends on it: the losses and the trained network's predictions are the
+/// same bit for bit with the yardstick on every step, every third step, or never.
+#[test]
+fn the_yardstick_schedule_changes_nothing_learned() {
+    let set = common::rope_train_set();
+    let model = ModelConfig {
+        residual_scale: 0.5,
+        ..ModelConfig::tiny()
+    };
+    let run = |every: usize| {
+        let cfg = TrainConfig {
+            iterations: 7,
+            rollout_steps: 3,
+            decay_steps: 7,
+            lr: 3e-3,
+            seed: 9,
+            yardstick_every: every,
+            ..TrainConfig::default()
+        };
+        let mut trainer = Trainer::new(ResidualNet::new(&model, 9).unwrap(), cfg).unwrap();
+        let stats: Vec<_> = (0..7).map(|_| trainer.train_step(&set).unwrap()).collect();
+        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        let probe = set.sample(&mut rng, 3, false).unwrap();
+        let pred = hybrid_rollout(
+            &trainer.net,
+            set.backbone(&probe),
+            &probe.scene,
+            &probe.history,
+            RolloutOptions::default(),
+        )
+        .unwrap()
+        .positions;
+        (stats, pred)
+    };
+    let (every, pred_every) = run(1);
+    let (third, pred_third) = run(3);
+    let (never, pred_never) = run(0);
+    assert!(every.iter().all(|s| s.backbone_loss.is_finite()));
+    for (t, s) in third.iter().enumerate() {
+        assert_eq!(s.backbone_loss.is_finite(), t % 3 == 0, "step {t}");
+        if t % 3 == 0 {
+            assert_eq!(s.backbone_loss, every[t].backbone_loss, "step {t}");
+        }
+    }
+    assert!(never.iter().all(|s| s.backbone_loss.is_nan()));
+    for (name, stats) in [("every third", &third), ("never", &never)] {
+        let same = stats
+            .iter()
+            .zip(&every)
+            .all(|(a, b)| a.loss == b.loss && a.grad_norm == b.grad_norm);
+        assert!(same, "{name}: losses differ from the every-step run");
+    }
+    assert_eq!(pred_third, pred_every);
+    assert_eq!(pred_never, pred_every);
 }
