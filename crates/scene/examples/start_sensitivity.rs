@@ -2,7 +2,7 @@
 //!
 //! ```sh
 //! cargo run --release -p pgrd-scene --example start_sensitivity -- \
-//!     <data-dir> <run-dir> [sigma_mm,...] [draws]
+//!     <data-dir> <run-dir> [sigma_mm,...] [draws] [all|normal|plane]
 //! ```
 //!
 //! For every val episode (the paper's window, unseen start points placed as the pipelines do),
@@ -12,7 +12,10 @@
 //! displaced start is at rest, as a differently tracked start would be). Per σ it prints the
 //! draws' mean val MDE, its spread over draws (standard deviation, min..max) and the per-episode
 //! spread: how finely a row of the results can be read when the start is known to about σ.
-//! Defaults: σ = 0.5, 1, 2 mm, 8 draws.
+//! Defaults: σ = 0.5, 1, 2 mm, 8 draws, displaced along all three axes. `normal` displaces
+//! each particle only along the start shape's thinnest principal axis (per episode: the
+//! eigenvector of the positions' covariance with the smallest eigenvalue, the normal of a
+//! flat sheet) by N(0, σ²); `plane` only along the two other axes.
 
 use std::num::NonZeroUsize;
 
@@ -25,7 +28,37 @@ use scene::{Protocol, Scene, SceneConfig, score_steps};
 
 type Error = Box<dyn std::error::Error>;
 
-const USAGE: &str = "start_sensitivity <data-dir> <run-dir> [sigma_mm,...] [draws]";
+const USAGE: &str =
+    "start_sensitivity <data-dir> <run-dir> [sigma_mm,...] [draws] [all|normal|plane]";
+
+/// Which directions a start position is displaced along.
+#[derive(Clone, Copy, PartialEq)]
+enum Along {
+    All,
+    Normal,
+    Plane,
+}
+
+/// The unit eigenvector of the positions' covariance with the smallest eigenvalue: power
+/// iteration on `tr(C) I - C`, whose largest eigenvalue is C's smallest.
+fn thinnest_axis(x: &[Vec3]) -> Vec3 {
+    let n = x.len().max(1) as f32;
+    let c = x.iter().copied().sum::<Vec3>() / n;
+    let mut cov = glam::Mat3::ZERO;
+    for p in x {
+        let d = *p - c;
+        cov += glam::Mat3::from_cols(d * d.x, d * d.y, d * d.z) / n;
+    }
+    let trace = cov.x_axis.x + cov.y_axis.y + cov.z_axis.z;
+    let flipped = glam::Mat3::from_diagonal(Vec3::splat(trace)) - cov;
+    // A start not parallel to any axis of a generic shape; 200 iterations are plenty for a
+    // sheet, whose smallest eigenvalue is far below the others.
+    let mut v = Vec3::new(0.36, 0.48, 0.8);
+    for _ in 0..200 {
+        v = (flipped * v).normalize_or(Vec3::Z);
+    }
+    v
+}
 
 fn main() -> Result<(), Error> {
     let args: Vec<String> = std::env::args().skip(1).collect();
@@ -43,6 +76,12 @@ fn main() -> Result<(), Error> {
     let draws: NonZeroUsize = match args.get(3) {
         Some(d) => d.parse().map_err(|e| format!("draws {d}: {e}; {USAGE}"))?,
         None => NonZeroUsize::new(8).ok_or("8 is non-zero")?,
+    };
+    let along = match args.get(4).map(String::as_str) {
+        None | Some("all") => Along::All,
+        Some("normal") => Along::Normal,
+        Some("plane") => Along::Plane,
+        Some(other) => return Err(format!("direction {other}; {USAGE}").into()),
     };
     let file: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(
         std::path::Path::new(run).join("backbone.json"),
@@ -86,6 +125,29 @@ fn main() -> Result<(), Error> {
         scenes[0].particles(),
         100.0 * mean(&base)
     );
+    if along != Along::All {
+        // How flat the starts are: RMS distance from the centroid along the thinnest axis.
+        let mut rms: Vec<f64> = scenes
+            .iter()
+            .map(|s| {
+                let n = thinnest_axis(&s.init.x);
+                let c = s.init.x.iter().copied().sum::<Vec3>() / s.init.x.len().max(1) as f32;
+                let ss: f64 = s
+                    .init
+                    .x
+                    .iter()
+                    .map(|p| f64::from((*p - c).dot(n)).powi(2))
+                    .sum();
+                (ss / s.init.x.len().max(1) as f64).sqrt()
+            })
+            .collect();
+        rms.sort_by(f64::total_cmp);
+        println!(
+            "starts' RMS extent along their thinnest axis: median {:.2} mm, max {:.2} mm",
+            1000.0 * rms[rms.len() / 2],
+            1000.0 * rms[rms.len() - 1]
+        );
+    }
     println!(
         "sigma_mm  draws  val_mde_cm(mean)  sd_over_draws_cm  min..max_cm  per_episode_sd_cm(median, max)"
     );
@@ -96,9 +158,16 @@ fn main() -> Result<(), Error> {
             for (e, scene) in scenes.iter().enumerate() {
                 let mut rng = ChaCha8Rng::seed_from_u64((draw as u64) << 32 | e as u64);
                 let mut moved = scene.clone();
+                let normal = thinnest_axis(&scene.init.x);
                 for x in &mut moved.init.x {
                     let n: [f32; 3] = std::array::from_fn(|_| rng.sample(StandardNormal));
-                    *x += Vec3::from_array(n) * (sigma_mm / 1000.0);
+                    let d = Vec3::from_array(n);
+                    let d = match along {
+                        Along::All => d,
+                        Along::Normal => normal * d.x,
+                        Along::Plane => d - normal * d.dot(normal),
+                    };
+                    *x += d * (sigma_mm / 1000.0);
                 }
                 mde[e].push(episode_mde(&moved)?);
             }
