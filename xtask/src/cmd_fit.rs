@@ -140,6 +140,18 @@ pub fn run(args: &FitArgs) -> anyhow::Result<BackboneFile> {
             kept.loss
         );
     }
+    // A mean loss at the penalty means the kept candidate diverged on every episode it was
+    // scored on: its parameters are whatever CMA-ES drew last, not a fit, so nothing is written.
+    anyhow::ensure!(
+        outcome.best_loss < fit::PENALTY,
+        "every rollout of the kept candidate diverged on {} (its loss is the divergence \
+         penalty, {:.0e} m²): no parameters within the bounds simulate this data, and nothing \
+         was written to {}; check the dataset's units and scale (positions in metres, gravity \
+         in m/s², fps)",
+        args.data.display(),
+        fit::PENALTY,
+        backbone_path(&args.run).display()
+    );
     let params = BackboneFamily::params(&outcome.best);
     if let Some(scene) = scenes.first() {
         warn_if_unconnected(scene, &params, Default::default())?;
@@ -227,5 +239,32 @@ mod tests {
         // ... and writes no key, so older readers still parse it.
         assert!(!serde_json::to_string(&old).unwrap().contains("substep"));
         std::fs::remove_dir_all(&dir).ok();
+    }
+
+    /// Data no parameters can simulate (gravity a million times too strong, upward) is a
+    /// clear error, and no backbone.json is written from the divergence penalty's candidate.
+    #[test]
+    fn a_fit_whose_every_rollout_diverges_is_an_error() {
+        let root = std::env::temp_dir().join(format!("pgrd-fit-diverged-{}", std::process::id()));
+        let data = root.join("data");
+        std::fs::create_dir_all(&data).unwrap();
+        for entry in std::fs::read_dir(FIXTURE_ROPE).unwrap() {
+            let path = entry.unwrap().path();
+            std::fs::copy(&path, data.join(path.file_name().unwrap())).unwrap();
+        }
+        let index = data.join("dataset.json");
+        let mut json: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&index).unwrap()).unwrap();
+        json["gravity"] = serde_json::json!([0.0, 0.0, 1e6]);
+        std::fs::write(&index, json.to_string()).unwrap();
+        let run_dir = root.join("run");
+        let args = FitArgs {
+            data: data.clone(),
+            ..FitArgs::quick_rope_fixture(run_dir.clone())
+        };
+        let err = run(&args).unwrap_err().to_string();
+        assert!(err.contains("diverged") && err.contains("units"), "{err}");
+        assert!(!backbone_path(&run_dir).exists());
+        std::fs::remove_dir_all(&root).ok();
     }
 }
