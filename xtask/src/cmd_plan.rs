@@ -123,6 +123,7 @@ struct ModelReport {
 /// Runs `plan`.
 pub fn run(args: &PlanArgs) -> anyhow::Result<()> {
     let kind: TaskKind = args.task.parse()?;
+    anyhow::ensure!(args.trials >= 1, "--trials must be at least 1");
     let backbone = read_backbone(&args.run)?;
     // The field is per tracked particle of the training data; a task's rope has its own.
     anyhow::ensure!(

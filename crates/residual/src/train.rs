@@ -503,6 +503,28 @@ impl Trainer {
                 cfg.ema_decay
             )));
         }
+        // A NaN or negative rate would train on and save a network of NaN weights (every later
+        // rollout then diverges, which a step tolerates), and a zero clip would never move it.
+        let positive = |x: f64| x.is_finite() && x > 0.0;
+        let non_negative = |x: f64| x.is_finite() && x >= 0.0;
+        if !positive(cfg.lr) || !non_negative(cfg.lr_min) {
+            return Err(ResidualError::Input(format!(
+                "learning rates must be finite, lr > 0 and lr_min >= 0 (got lr {}, lr_min {})",
+                cfg.lr, cfg.lr_min
+            )));
+        }
+        if !positive(cfg.clip) {
+            return Err(ResidualError::Input(format!(
+                "the gradient clip must be finite and > 0, got {}",
+                cfg.clip
+            )));
+        }
+        if cfg.rollout_steps == 0 || cfg.batch == 0 {
+            return Err(ResidualError::Input(format!(
+                "rollout_steps ({}) and batch ({}) must be at least 1",
+                cfg.rollout_steps, cfg.batch
+            )));
+        }
         let ema = (cfg.ema_decay > 0.0)
             .then(|| {
                 vars.iter()

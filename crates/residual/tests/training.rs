@@ -480,3 +480,55 @@ fn the_yardstick_schedule_changes_nothing_learned() {
     assert_eq!(pred_third, pred_every);
     assert_eq!(pred_never, pred_every);
 }
+
+/// Settings that cannot train are refused when the trainer is made, before any step: a NaN or
+/// non-positive learning rate (which would save a network of NaN weights), a zero or NaN clip,
+/// zero-step rollouts, an empty batch, a weight-average decay outside [0, 1).
+#[test]
+fn settings_that_cannot_train_are_refused() {
+    let model = ModelConfig::tiny();
+    let bad = [
+        TrainConfig {
+            lr: f64::NAN,
+            ..TrainConfig::default()
+        },
+        TrainConfig {
+            lr: -1e-3,
+            ..TrainConfig::default()
+        },
+        TrainConfig {
+            lr_min: f64::INFINITY,
+            ..TrainConfig::default()
+        },
+        TrainConfig {
+            clip: 0.0,
+            ..TrainConfig::default()
+        },
+        TrainConfig {
+            clip: f64::NAN,
+            ..TrainConfig::default()
+        },
+        TrainConfig {
+            rollout_steps: 0,
+            ..TrainConfig::default()
+        },
+        TrainConfig {
+            batch: 0,
+            ..TrainConfig::default()
+        },
+        TrainConfig {
+            ema_decay: 1.0,
+            ..TrainConfig::default()
+        },
+    ];
+    for cfg in bad {
+        let shown = format!("{cfg:?}");
+        let net = ResidualNet::new(&model, 0).unwrap();
+        match Trainer::new(net, cfg) {
+            Err(residual::ResidualError::Input(_)) => {}
+            Err(e) => panic!("{shown}: another error {e}"),
+            Ok(_) => panic!("{shown}: accepted"),
+        }
+    }
+    assert!(Trainer::new(ResidualNet::new(&model, 0).unwrap(), TrainConfig::default()).is_ok());
+}
