@@ -104,8 +104,8 @@ pub struct TrainArgs {
     /// rollout error moves along training.
     #[arg(long, default_value_t = 0)]
     pub snapshot_every: usize,
-    /// Hold this many training episodes out of the optimiser's sampling (spread evenly over
-    /// the split) and choose the network by its rollout MDE over their full evaluation windows:
+    /// Hold this many training episodes out of the optimiser's sampling (the last ones of the
+    /// split: whole recordings, as the val split) and choose the network by its rollout MDE over their full evaluation windows:
     /// the network of step 0 (nearly the backbone), replaced at each evaluation (every
     /// --select-every steps and at the end) by one that beats the current choice by more than
     /// one standard error of the paired per-episode differences; the choice is written to

@@ -7,10 +7,16 @@ use super::TrainSet;
 use crate::{ResidualError, ResidualNet, Result, RolloutOptions, hybrid_rollout};
 
 impl TrainSet {
-    /// Moves `count` episodes out of this set into a new one (for [`TrainSet::rollout_mde_cm`]),
-    /// spread evenly over the set: episodes `⌊j · n / count⌋` for `j < count`. Consecutive
-    /// episodes of a generated dataset continue one another, so a contiguous block would
-    /// cover only a few situations. Errors when fewer than one episode would be left to train on.
+    /// Moves the last `count` episodes of this set into a new one (for
+    /// [`TrainSet::rollout_mde_cm`]). Datasets cut each recording into consecutive, overlapping
+    /// episodes in order (the generated ones: ten per recording, each sharing half its frames
+    /// with the next), so a block at the end holds whole recordings, shares no frames with the
+    /// episodes left to train on (but at one boundary when `count` splits a recording), and
+    /// mixes early and late parts of a recording as the val split does. (Until session 44 the
+    /// episodes were spread evenly, `⌊j · n / count⌋`: with ten episodes per recording and 20
+    /// of 100 held out, those are the 1st and 6th of every recording, half of them a
+    /// recording's start from rest, each overlapping its training neighbours; docs/residual.md.)
+    /// Errors when fewer than one episode would be left to train on.
     pub fn hold_out(&mut self, count: usize) -> Result<TrainSet> {
         let n = self.episodes.len();
         if count == 0 || count >= n {
@@ -19,17 +25,7 @@ impl TrainSet {
                 n.saturating_sub(1)
             )));
         }
-        let picked: Vec<usize> = (0..count).map(|j| j * n / count).collect();
-        let all = std::mem::take(&mut self.episodes);
-        let (mut kept, mut held) = (Vec::with_capacity(n - count), Vec::with_capacity(count));
-        for (i, ep) in all.into_iter().enumerate() {
-            if picked.contains(&i) {
-                held.push(ep);
-            } else {
-                kept.push(ep);
-            }
-        }
-        self.episodes = kept;
+        let held = self.episodes.split_off(n - count);
         Ok(TrainSet {
             episodes: held,
             meta: self.meta.clone(),
