@@ -69,7 +69,7 @@ pub struct TrainConfig {
     pub ema_decay: f64,
     /// Score the backbone alone on the optimiser step's segments (the yardstick
     /// [`StepStats::backbone_loss`]) every this many steps, from step 0 (0: never). It costs a
-    /// second backbone rollout per segment (4-20 % of a step, docs/BENCHMARKS.md) and changes
+    /// second backbone rollout per segment (4-22 % of a step, docs/BENCHMARKS.md) and changes
     /// nothing that is learned. Configurations written before this option scored every step.
     #[serde(default = "every_step")]
     pub yardstick_every: usize,
