@@ -488,39 +488,20 @@ fn the_yardstick_schedule_changes_nothing_learned() {
 #[test]
 fn settings_that_cannot_train_are_refused() {
     let model = ModelConfig::tiny();
+    let with = |change: fn(&mut TrainConfig)| {
+        let mut cfg = TrainConfig::default();
+        change(&mut cfg);
+        cfg
+    };
     let bad = [
-        TrainConfig {
-            lr: f64::NAN,
-            ..TrainConfig::default()
-        },
-        TrainConfig {
-            lr: -1e-3,
-            ..TrainConfig::default()
-        },
-        TrainConfig {
-            lr_min: f64::INFINITY,
-            ..TrainConfig::default()
-        },
-        TrainConfig {
-            clip: 0.0,
-            ..TrainConfig::default()
-        },
-        TrainConfig {
-            clip: f64::NAN,
-            ..TrainConfig::default()
-        },
-        TrainConfig {
-            rollout_steps: 0,
-            ..TrainConfig::default()
-        },
-        TrainConfig {
-            batch: 0,
-            ..TrainConfig::default()
-        },
-        TrainConfig {
-            ema_decay: 1.0,
-            ..TrainConfig::default()
-        },
+        with(|c| c.lr = f64::NAN),
+        with(|c| c.lr = -1e-3),
+        with(|c| c.lr_min = f64::INFINITY),
+        with(|c| c.clip = 0.0),
+        with(|c| c.clip = f64::NAN),
+        with(|c| c.rollout_steps = 0),
+        with(|c| c.batch = 0),
+        with(|c| c.ema_decay = 1.0),
     ];
     for cfg in bad {
         let shown = format!("{cfg:?}");
