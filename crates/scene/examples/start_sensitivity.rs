@@ -125,12 +125,13 @@ fn main() -> Result<(), Error> {
         scenes[0].particles(),
         100.0 * mean(&base)
     );
+    let normals: Vec<Vec3> = scenes.iter().map(|s| thinnest_axis(&s.init.x)).collect();
     if along != Along::All {
         // How flat the starts are: RMS distance from the centroid along the thinnest axis.
         let mut rms: Vec<f64> = scenes
             .iter()
-            .map(|s| {
-                let n = thinnest_axis(&s.init.x);
+            .zip(&normals)
+            .map(|(s, &n)| {
                 let c = s.init.x.iter().copied().sum::<Vec3>() / s.init.x.len().max(1) as f32;
                 let ss: f64 = s
                     .init
@@ -158,7 +159,7 @@ fn main() -> Result<(), Error> {
             for (e, scene) in scenes.iter().enumerate() {
                 let mut rng = ChaCha8Rng::seed_from_u64((draw as u64) << 32 | e as u64);
                 let mut moved = scene.clone();
-                let normal = thinnest_axis(&scene.init.x);
+                let normal = normals[e];
                 for x in &mut moved.init.x {
                     let n: [f32; 3] = std::array::from_fn(|_| rng.sample(StandardNormal));
                     let d = Vec3::from_array(n);
