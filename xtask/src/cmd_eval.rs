@@ -8,7 +8,7 @@ use dataset::{Dataset, Split};
 use metrics::{ChamferConvention, RolloutAggregate};
 use rayon::prelude::*;
 use scene::{Protocol, StepErrors};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use crate::common::{
     ProtocolArg, load_scenes, predict_tracked, read_backbone, read_residual, warn_if_unconnected,
@@ -57,6 +57,22 @@ pub struct Summary {
     pub convention: &'static str,
 }
 
+/// One episode's errors, cm, each the mean over the rollout's steps (so the mean of these over
+/// episodes is the report's summary when every episode has the same steps). `cargo xtask
+/// compare` pairs two reports' episodes by these.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct EpisodeScore {
+    /// Index of the episode in the dataset.
+    pub episode: usize,
+    /// Mean Euclidean distance of same-index points.
+    pub mde_cm: f64,
+    /// Two-sided Chamfer (sum of both directions' means).
+    pub chamfer_cm: f64,
+    /// Exact EMD; absent with `--no-emd`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub emd_cm: Option<f64>,
+}
+
 /// The report `eval` writes.
 #[derive(Serialize)]
 pub struct EvalReport {
@@ -84,6 +100,8 @@ pub struct EvalReport {
     pub metrics: serde_json::Value,
     /// Per-step means over episodes, cm.
     pub per_step_cm: serde_json::Value,
+    /// Per episode, in dataset order (diverged episodes are left out).
+    pub per_episode: Vec<EpisodeScore>,
     /// Rollouts that diverged (scored as missing; the command fails if any does).
     pub diverged: usize,
     /// Wall time of the rollouts, s.
@@ -294,6 +312,18 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
         1.0,
         &curves,
     )?;
+    let mean_cm = |e: &[StepErrors], f: fn(&StepErrors) -> f64| {
+        100.0 * e.iter().map(f).sum::<f64>() / e.len().max(1) as f64
+    };
+    let episode_scores = per_episode
+        .iter()
+        .map(|(e, _, (i, _, _))| EpisodeScore {
+            episode: *i,
+            mde_cm: mean_cm(e, |s| s.mde),
+            chamfer_cm: mean_cm(e, StepErrors::chamfer_two_sided),
+            emd_cm: (!args.no_emd).then(|| mean_cm(e, |s| s.emd)),
+        })
+        .collect();
     let report = EvalReport {
         model: model_name.clone(),
         variant: net.as_ref().map(|n| n.config().variant()),
@@ -306,6 +336,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
         steps: mde_steps.len(),
         metrics,
         per_step_cm: per_step,
+        per_episode: episode_scores,
         diverged,
         rollout_wall_s,
         wall_s: t0.elapsed().as_secs_f64(),

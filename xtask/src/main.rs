@@ -8,6 +8,7 @@ use clap::{Parser, Subcommand};
 #[global_allocator]
 static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
+mod cmd_compare;
 mod cmd_demo;
 mod cmd_diagnose;
 mod cmd_eval;
@@ -50,6 +51,9 @@ enum Command {
     Refine(cmd_refine::RefineArgs),
     /// Evaluate a run's model on a split: MDE, Chamfer, EMD per step.
     Eval(cmd_eval::EvalArgs),
+    /// Paired comparison of two eval reports on the same episodes: shrinkage with a bootstrap
+    /// interval.
+    Compare(cmd_compare::CompareArgs),
     /// Point-cloud metrics of two .npy clouds as JSON (MDE, Chamfer, EMD).
     Metrics(cmd_metrics::MetricsArgs),
     /// Render a run's predicted and the ground-truth frames of an episode; J, F, LPIPS.
@@ -73,6 +77,7 @@ fn main() -> anyhow::Result<()> {
         Command::Fit(args) => cmd_fit::run(&args).map(drop),
         Command::Refine(args) => cmd_refine::run(&args),
         Command::Eval(args) => cmd_eval::run(&args).map(drop),
+        Command::Compare(args) => cmd_compare::run(&args),
         Command::Import(args) => cmd_import::run(&args),
         Command::Metrics(args) => cmd_metrics::run(&args),
         Command::Plan(args) => cmd_plan::run(&args),

@@ -1,0 +1,334 @@
+//! `cargo xtask compare --before <eval.json> --after <eval.json>`: how much lower is one model's
+//! error than another's on the same episodes, and how sure is that?
+//!
+//! Both files are `eval` reports of the same dataset, split and protocol. The statistic is the
+//! paired shrinkage `1 − Σ after / Σ before` over episodes (each episode's error the mean over
+//! its steps) with a 95 % percentile interval from a paired bootstrap (`gap::paired_shrinkage`,
+//! the diagnosis's). Episodes cut from one recording overlap and are not independent samples;
+//! `--block N` resamples runs of N consecutive episodes (whole recordings when a recording is
+//! cut into N, as the reference world's are into 10) instead, a block bootstrap.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, bail};
+use serde::{Deserialize, Serialize};
+
+use crate::cmd_eval::EpisodeScore;
+use crate::report::write_json;
+
+/// Arguments of `compare`.
+#[derive(clap::Args, Debug)]
+pub struct CompareArgs {
+    /// The reference model's eval report (e.g. `runs/rope/eval_val.json`, the backbone's).
+    #[arg(long)]
+    pub before: PathBuf,
+    /// The compared model's eval report on the same episodes (e.g. `eval_pgrd_val.json`).
+    #[arg(long)]
+    pub after: PathBuf,
+    /// Resample blocks of this many consecutive episodes instead of single ones (episodes of
+    /// one recording share frames; the reference world cuts each recording into 10).
+    #[arg(long, default_value_t = 1)]
+    pub block: usize,
+    /// Bootstrap resamples.
+    #[arg(long, default_value_t = 2000)]
+    pub resamples: usize,
+    /// Seed of the resampling.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Also write the comparison as JSON here.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+}
+
+/// What `compare` reads of an eval report.
+#[derive(Deserialize)]
+struct EvalFile {
+    model: String,
+    object: String,
+    split: String,
+    protocol: String,
+    steps: usize,
+    #[serde(default)]
+    per_episode: Option<Vec<EpisodeScore>>,
+}
+
+/// One metric's paired comparison.
+#[derive(Debug, Serialize)]
+pub struct MetricComparison {
+    /// Metric name as in the eval report (`mde_cm`, `chamfer_cm`, `emd_cm`).
+    pub metric: String,
+    /// Mean over episodes of the reference model's error, cm.
+    pub before_cm: f64,
+    /// Mean over episodes of the compared model's error, cm.
+    pub after_cm: f64,
+    /// `1 − Σ after / Σ before` (positive: the compared model errs less).
+    pub shrinkage: f64,
+    /// 95 % percentile interval of the shrinkage over resamples.
+    pub ci95: [f64; 2],
+}
+
+/// The whole comparison (`--json`).
+#[derive(Debug, Serialize)]
+pub struct Comparison {
+    /// Model names, reference first.
+    pub models: [String; 2],
+    /// Object both reports scored.
+    pub object: String,
+    /// Split both reports scored.
+    pub split: String,
+    /// Protocol of both reports.
+    pub protocol: String,
+    /// Episodes paired.
+    pub episodes: usize,
+    /// Episodes per resampled block (the last one may be shorter).
+    pub block: usize,
+    /// Blocks resampled.
+    pub blocks: usize,
+    /// Bootstrap resamples.
+    pub resamples: usize,
+    /// Seed of the resampling.
+    pub seed: u64,
+    /// MDE, two-sided Chamfer and (when both reports have it) EMD.
+    pub metrics: Vec<MetricComparison>,
+}
+
+/// Fewer resampling units than this make the interval coarse (with k units a bootstrap has at
+/// most C(2k − 1, k) distinct resamples, 10 for k = 3), so the command says so.
+const FEW_UNITS: usize = 10;
+
+pub fn run(args: &CompareArgs) -> anyhow::Result<()> {
+    let before = read(&args.before)?;
+    let after = read(&args.after)?;
+    let c = compare(&before, &after, args.block, args.resamples, args.seed)
+        .with_context(|| format!("{} vs {}", args.before.display(), args.after.display()))?;
+    println!(
+        "{} ({} split, {} protocol): {} -> {}, {} episodes in {} resampled block(s) of {}",
+        c.object, c.split, c.protocol, c.models[0], c.models[1], c.episodes, c.blocks, c.block
+    );
+    for m in &c.metrics {
+        println!(
+            "  {:<11} {:>8.3} -> {:>8.3} cm   shrinkage {:+6.1} %   95 % interval [{:+.1}, {:+.1}] %",
+            m.metric,
+            m.before_cm,
+            m.after_cm,
+            100.0 * m.shrinkage,
+            100.0 * m.ci95[0],
+            100.0 * m.ci95[1],
+        );
+    }
+    if c.blocks < FEW_UNITS {
+        println!(
+            "  note: only {} resampling unit(s); the interval is coarse and says little",
+            c.blocks
+        );
+    }
+    if c.block == 1 {
+        println!(
+            "  note: single episodes resampled; if they are cut from fewer, longer recordings \
+             they overlap and the interval is too narrow (--block)"
+        );
+    }
+    if let Some(path) = &args.json {
+        write_json(path, &c)?;
+    }
+    Ok(())
+}
+
+fn read(path: &Path) -> anyhow::Result<EvalFile> {
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    serde_json::from_str(&text).with_context(|| format!("{} is not an eval report", path.display()))
+}
+
+/// Pairs the two reports' episodes and compares each metric both report.
+fn compare(
+    before: &EvalFile,
+    after: &EvalFile,
+    block: usize,
+    resamples: usize,
+    seed: u64,
+) -> anyhow::Result<Comparison> {
+    for (what, a, b) in [
+        ("object", &before.object, &after.object),
+        ("split", &before.split, &after.split),
+        ("protocol", &before.protocol, &after.protocol),
+    ] {
+        if a != b {
+            bail!("the reports differ in {what} ({a} against {b})");
+        }
+    }
+    if before.steps != after.steps {
+        bail!(
+            "the reports' rollouts differ in length ({} against {} steps)",
+            before.steps,
+            after.steps
+        );
+    }
+    let episodes = |f: &EvalFile| -> anyhow::Result<Vec<EpisodeScore>> {
+        f.per_episode.clone().with_context(|| {
+            format!(
+                "the {} report has no per-episode errors (written by an older version: run \
+                 `eval` again)",
+                f.model
+            )
+        })
+    };
+    let (b, a) = (episodes(before)?, episodes(after)?);
+    let ids = |v: &[EpisodeScore]| v.iter().map(|e| e.episode).collect::<Vec<_>>();
+    if ids(&b) != ids(&a) {
+        let only = |x: &[EpisodeScore], y: &[EpisodeScore]| {
+            let y = ids(y);
+            ids(x)
+                .into_iter()
+                .filter(|i| !y.contains(i))
+                .collect::<Vec<_>>()
+        };
+        bail!(
+            "the reports scored different episodes (only before: {:?}; only after: {:?}); a \
+             diverged rollout is left out of its report",
+            only(&b, &a),
+            only(&a, &b)
+        );
+    }
+    if b.is_empty() {
+        bail!("the reports have no episodes");
+    }
+    if block == 0 {
+        bail!("--block must be at least 1");
+    }
+    let mut metrics = Vec::new();
+    type Field = fn(&EpisodeScore) -> Option<f64>;
+    let fields: [(&str, Field); 3] = [
+        ("mde_cm", |e| Some(e.mde_cm)),
+        ("chamfer_cm", |e| Some(e.chamfer_cm)),
+        ("emd_cm", |e| e.emd_cm),
+    ];
+    for (name, get) in fields {
+        let (Some(x), Some(y)) = (
+            b.iter().map(get).collect::<Option<Vec<f64>>>(),
+            a.iter().map(get).collect::<Option<Vec<f64>>>(),
+        ) else {
+            continue;
+        };
+        // Resampling blocks of episodes with their summed errors is the block bootstrap of
+        // the same ratio, since the shrinkage only needs the sums.
+        let sums = |v: &[f64]| {
+            v.chunks(block)
+                .map(|c| c.iter().sum())
+                .collect::<Vec<f64>>()
+        };
+        let s = gap::paired_shrinkage(&sums(&x), &sums(&y), resamples, seed)
+            .with_context(|| name.to_string())?;
+        let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+        metrics.push(MetricComparison {
+            metric: name.into(),
+            before_cm: mean(&x),
+            after_cm: mean(&y),
+            shrinkage: s.shrinkage,
+            ci95: s.ci95,
+        });
+    }
+    Ok(Comparison {
+        models: [before.model.clone(), after.model.clone()],
+        object: before.object.clone(),
+        split: before.split.clone(),
+        protocol: before.protocol.clone(),
+        episodes: b.len(),
+        block,
+        blocks: b.len().div_ceil(block),
+        resamples,
+        seed,
+        metrics,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn report(model: &str, mde: &[f64], emd: bool) -> EvalFile {
+        EvalFile {
+            model: model.into(),
+            object: "rope".into(),
+            split: "val".into(),
+            protocol: "paper".into(),
+            steps: 37,
+            per_episode: Some(
+                mde.iter()
+                    .enumerate()
+                    .map(|(i, &m)| EpisodeScore {
+                        episode: 100 + i,
+                        mde_cm: m,
+                        chamfer_cm: 2.0 * m,
+                        emd_cm: emd.then_some(m),
+                    })
+                    .collect(),
+            ),
+        }
+    }
+
+    #[test]
+    fn halved_errors_shrink_by_half() {
+        let b = report("spring-mass", &[2.0, 4.0, 1.0, 3.0], true);
+        let a = report("pgrd", &[1.0, 2.0, 0.5, 1.5], true);
+        let c = compare(&b, &a, 1, 500, 3).unwrap();
+        assert_eq!(c.metrics.len(), 3);
+        for m in &c.metrics {
+            assert!((m.shrinkage - 0.5).abs() < 1e-12, "{m:?}");
+            // Every resample halves the error too.
+            assert!((m.ci95[0] - 0.5).abs() < 1e-12 && (m.ci95[1] - 0.5).abs() < 1e-12);
+        }
+        assert!((c.metrics[0].before_cm - 2.5).abs() < 1e-12);
+        assert!((c.metrics[0].after_cm - 1.25).abs() < 1e-12);
+    }
+
+    #[test]
+    fn one_block_gives_a_point_interval_and_single_episodes_do_not() {
+        let b = report("spring-mass", &[2.0, 2.0, 2.0, 2.0, 2.0, 2.0], false);
+        let a = report("pgrd", &[1.0, 3.0, 1.5, 2.5, 1.0, 2.2], false);
+        let whole = compare(&b, &a, 6, 500, 0).unwrap();
+        assert_eq!((whole.blocks, whole.metrics.len()), (1, 2));
+        let m = &whole.metrics[0];
+        assert_eq!(m.ci95, [m.shrinkage, m.shrinkage]);
+        let single = compare(&b, &a, 1, 500, 0).unwrap();
+        let m1 = &single.metrics[0];
+        assert_eq!(m1.shrinkage, m.shrinkage);
+        assert!(
+            m1.ci95[0] < m1.shrinkage && m1.shrinkage < m1.ci95[1],
+            "{m1:?}"
+        );
+        // Blocks of 4 leave a short last block: 2 blocks.
+        assert_eq!(compare(&b, &a, 4, 10, 0).unwrap().blocks, 2);
+    }
+
+    #[test]
+    fn mismatched_reports_are_refused_with_the_reason() {
+        let b = report("spring-mass", &[2.0, 2.0, 2.0], true);
+        let mut a = report("pgrd", &[1.0, 1.0], true);
+        let e = compare(&b, &a, 1, 10, 0).unwrap_err().to_string();
+        assert!(e.contains("only before: [102]"), "{e}");
+        a = report("pgrd", &[1.0, 1.0, 1.0], true);
+        a.split = "train".into();
+        let e = compare(&b, &a, 1, 10, 0).unwrap_err().to_string();
+        assert!(e.contains("split"), "{e}");
+        a = report("pgrd", &[1.0, 1.0, 1.0], true);
+        a.per_episode = None;
+        let e = compare(&b, &a, 1, 10, 0).unwrap_err().to_string();
+        assert!(e.contains("run `eval` again"), "{e}");
+        a = report("pgrd", &[1.0, 1.0, 1.0], true);
+        assert!(compare(&b, &a, 0, 10, 0).is_err());
+        a.per_episode = Some(Vec::new());
+        let mut b0 = report("spring-mass", &[], true);
+        b0.per_episode = Some(Vec::new());
+        assert!(compare(&b0, &a, 1, 10, 0).is_err());
+    }
+
+    #[test]
+    fn emd_is_compared_only_when_both_have_it() {
+        let b = report("spring-mass", &[2.0, 3.0], true);
+        let a = report("pgrd", &[1.0, 2.0], false);
+        let c = compare(&b, &a, 1, 10, 0).unwrap();
+        let names: Vec<_> = c.metrics.iter().map(|m| m.metric.as_str()).collect();
+        assert_eq!(names, ["mde_cm", "chamfer_cm"]);
+    }
+}
