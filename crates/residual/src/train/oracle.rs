@@ -21,7 +21,9 @@ use crate::{ResidualError, Result};
 impl TrainSet {
     /// The greedy bounded oracle's rollout MDE (cm, scored as `cargo xtask eval` scores) with
     /// `bound` m/s per axis, per episode, for at most `max_episodes` of this set's episodes
-    /// spread evenly over it (`⌊j · n / max⌋`): pairs of (dataset index, MDE). `bound` 0 is the
+    /// spread evenly over it (`⌊j · n / max⌋`; on episodes cut in order from recordings such a
+    /// spread can fall on the recordings' starts, so `usize::MAX`, all of them, is the unbiased
+    /// choice): pairs of (dataset index, MDE). `bound` 0 is the
     /// backbone alone. Episodes run in parallel on the current rayon pool; the result does not
     /// depend on the thread count.
     ///
