@@ -105,12 +105,12 @@ pub struct TrainArgs {
     #[arg(long, default_value_t = 0)]
     pub snapshot_every: usize,
     /// Hold this many training episodes out of the optimiser's sampling (the last ones of the
-    /// split: whole recordings, as the val split) and choose the network by its rollout MDE over their full evaluation windows:
-    /// the network of step 0 (nearly the backbone), replaced at each evaluation (every
-    /// --select-every steps and at the end) by one that beats the current choice by more than
-    /// one standard error of the paired per-episode differences; the choice is written to
-    /// residual.safetensors (0: no selection, the last network is written). The val split is
-    /// never used. See docs/residual.md.
+    /// split: whole recordings, as the val split) and choose the network by its rollout MDE
+    /// over their full evaluation windows: the network of step 0 (nearly the backbone),
+    /// replaced at each evaluation (every --select-every steps and at the end) by one that
+    /// beats the current choice by more than one standard error of the paired per-episode
+    /// differences; the choice is written to residual.safetensors (0: no selection, the last
+    /// network is written). The val split is never used. See docs/residual.md.
     #[arg(long, default_value_t = 0)]
     pub holdout: usize,
     /// With --holdout: evaluate the held-out rollout MDE every this many optimiser steps
