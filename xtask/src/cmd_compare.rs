@@ -7,6 +7,8 @@
 //! the diagnosis's). Episodes cut from one recording overlap and are not independent samples;
 //! `--block N` resamples runs of N consecutive episodes (whole recordings when a recording is
 //! cut into N, as the reference world's are into 10) instead, a block bootstrap.
+//! `--episodes A..B` keeps only the episodes with dataset indices in that range, e.g. the
+//! recordings of a val split that no choice of the model ever saw.
 
 use std::path::{Path, PathBuf};
 
@@ -29,6 +31,11 @@ pub struct CompareArgs {
     /// one recording share frames; the reference world cuts each recording into 10).
     #[arg(long, default_value_t = 1)]
     pub block: usize,
+    /// Compare only the episodes whose dataset index lies in `A..B` (half-open, as the
+    /// reports' `per_episode[].episode`), e.g. `120..160` for the val episodes after the
+    /// first 20 of a 100-episode training split.
+    #[arg(long, value_parser = parse_range)]
+    pub episodes: Option<EpisodeRange>,
     /// Bootstrap resamples.
     #[arg(long, default_value_t = 2000)]
     pub resamples: usize,
@@ -38,6 +45,32 @@ pub struct CompareArgs {
     /// Also write the comparison as JSON here.
     #[arg(long)]
     pub json: Option<PathBuf>,
+}
+
+/// Dataset indices `start..end` (half-open) of the episodes to compare.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+pub struct EpisodeRange {
+    /// First index kept.
+    pub start: usize,
+    /// One past the last index kept.
+    pub end: usize,
+}
+
+/// Parses `A..B` with `A < B`.
+fn parse_range(text: &str) -> Result<EpisodeRange, String> {
+    let (a, b) = text
+        .split_once("..")
+        .ok_or_else(|| format!("expected A..B (e.g. 120..160), got {text:?}"))?;
+    let index = |s: &str| {
+        s.trim()
+            .parse::<usize>()
+            .map_err(|e| format!("{s:?} in {text:?}: {e}"))
+    };
+    let (start, end) = (index(a)?, index(b)?);
+    if start >= end {
+        return Err(format!("{text:?} is empty: A must be below B"));
+    }
+    Ok(EpisodeRange { start, end })
 }
 
 /// What `compare` reads of an eval report.
@@ -80,6 +113,9 @@ pub struct Comparison {
     pub protocol: String,
     /// Episodes paired.
     pub episodes: usize,
+    /// The range of dataset indices kept (`--episodes`); absent: every episode.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub episode_range: Option<EpisodeRange>,
     /// Episodes per resampled block (the last one may be shorter).
     pub block: usize,
     /// Blocks resampled.
@@ -99,10 +135,21 @@ const FEW_UNITS: usize = 10;
 pub fn run(args: &CompareArgs) -> anyhow::Result<()> {
     let before = read(&args.before)?;
     let after = read(&args.after)?;
-    let c = compare(&before, &after, args.block, args.resamples, args.seed)
-        .with_context(|| format!("{} vs {}", args.before.display(), args.after.display()))?;
+    let c = compare(
+        &before,
+        &after,
+        args.episodes,
+        args.block,
+        args.resamples,
+        args.seed,
+    )
+    .with_context(|| format!("{} vs {}", args.before.display(), args.after.display()))?;
+    let range = c
+        .episode_range
+        .map(|r| format!(" (dataset indices {}..{})", r.start, r.end))
+        .unwrap_or_default();
     println!(
-        "{} ({} split, {} protocol): {} -> {}, {} episodes in {} resampled block(s) of {}",
+        "{} ({} split, {} protocol): {} -> {}, {} episodes{range} in {} resampled block(s) of {}",
         c.object, c.split, c.protocol, c.models[0], c.models[1], c.episodes, c.blocks, c.block
     );
     for m in &c.metrics {
@@ -144,6 +191,7 @@ fn read(path: &Path) -> anyhow::Result<EvalFile> {
 fn compare(
     before: &EvalFile,
     after: &EvalFile,
+    range: Option<EpisodeRange>,
     block: usize,
     resamples: usize,
     seed: u64,
@@ -173,7 +221,19 @@ fn compare(
             )
         })
     };
-    let (b, a) = (episodes(before)?, episodes(after)?);
+    let (mut b, mut a) = (episodes(before)?, episodes(after)?);
+    if let Some(r) = range {
+        for v in [&mut b, &mut a] {
+            v.retain(|e| (r.start..r.end).contains(&e.episode));
+        }
+        if b.is_empty() && a.is_empty() {
+            bail!(
+                "no episode of the reports has a dataset index in {}..{}",
+                r.start,
+                r.end
+            );
+        }
+    }
     let ids = |v: &[EpisodeScore]| v.iter().map(|e| e.episode).collect::<Vec<_>>();
     if ids(&b) != ids(&a) {
         let only = |x: &[EpisodeScore], y: &[EpisodeScore]| {
@@ -234,6 +294,7 @@ fn compare(
         split: before.split.clone(),
         protocol: before.protocol.clone(),
         episodes: b.len(),
+        episode_range: range,
         block,
         blocks: b.len().div_ceil(block),
         resamples,
@@ -271,7 +332,7 @@ mod tests {
     fn halved_errors_shrink_by_half() {
         let b = report("spring-mass", &[2.0, 4.0, 1.0, 3.0], true);
         let a = report("pgrd", &[1.0, 2.0, 0.5, 1.5], true);
-        let c = compare(&b, &a, 1, 500, 3).unwrap();
+        let c = compare(&b, &a, None, 1, 500, 3).unwrap();
         assert_eq!(c.metrics.len(), 3);
         for m in &c.metrics {
             assert!((m.shrinkage - 0.5).abs() < 1e-12, "{m:?}");
@@ -286,11 +347,11 @@ mod tests {
     fn one_block_gives_a_point_interval_and_single_episodes_do_not() {
         let b = report("spring-mass", &[2.0, 2.0, 2.0, 2.0, 2.0, 2.0], false);
         let a = report("pgrd", &[1.0, 3.0, 1.5, 2.5, 1.0, 2.2], false);
-        let whole = compare(&b, &a, 6, 500, 0).unwrap();
+        let whole = compare(&b, &a, None, 6, 500, 0).unwrap();
         assert_eq!((whole.blocks, whole.metrics.len()), (1, 2));
         let m = &whole.metrics[0];
         assert_eq!(m.ci95, [m.shrinkage, m.shrinkage]);
-        let single = compare(&b, &a, 1, 500, 0).unwrap();
+        let single = compare(&b, &a, None, 1, 500, 0).unwrap();
         let m1 = &single.metrics[0];
         assert_eq!(m1.shrinkage, m.shrinkage);
         assert!(
@@ -298,36 +359,60 @@ mod tests {
             "{m1:?}"
         );
         // Blocks of 4 leave a short last block: 2 blocks.
-        assert_eq!(compare(&b, &a, 4, 10, 0).unwrap().blocks, 2);
+        assert_eq!(compare(&b, &a, None, 4, 10, 0).unwrap().blocks, 2);
     }
 
     #[test]
     fn mismatched_reports_are_refused_with_the_reason() {
         let b = report("spring-mass", &[2.0, 2.0, 2.0], true);
         let mut a = report("pgrd", &[1.0, 1.0], true);
-        let e = compare(&b, &a, 1, 10, 0).unwrap_err().to_string();
+        let e = compare(&b, &a, None, 1, 10, 0).unwrap_err().to_string();
         assert!(e.contains("only before: [102]"), "{e}");
         a = report("pgrd", &[1.0, 1.0, 1.0], true);
         a.split = "train".into();
-        let e = compare(&b, &a, 1, 10, 0).unwrap_err().to_string();
+        let e = compare(&b, &a, None, 1, 10, 0).unwrap_err().to_string();
         assert!(e.contains("split"), "{e}");
         a = report("pgrd", &[1.0, 1.0, 1.0], true);
         a.per_episode = None;
-        let e = compare(&b, &a, 1, 10, 0).unwrap_err().to_string();
+        let e = compare(&b, &a, None, 1, 10, 0).unwrap_err().to_string();
         assert!(e.contains("run `eval` again"), "{e}");
         a = report("pgrd", &[1.0, 1.0, 1.0], true);
-        assert!(compare(&b, &a, 0, 10, 0).is_err());
+        assert!(compare(&b, &a, None, 0, 10, 0).is_err());
         a.per_episode = Some(Vec::new());
         let mut b0 = report("spring-mass", &[], true);
         b0.per_episode = Some(Vec::new());
-        assert!(compare(&b0, &a, 1, 10, 0).is_err());
+        assert!(compare(&b0, &a, None, 1, 10, 0).is_err());
+    }
+
+    #[test]
+    fn a_range_keeps_only_its_episodes() {
+        // Episodes 100..106; the first two are twice as bad after, the rest halved.
+        let b = report("spring-mass", &[1.0, 1.0, 2.0, 2.0, 2.0, 2.0], false);
+        let a = report("pgrd", &[2.0, 2.0, 1.0, 1.0, 1.0, 1.0], false);
+        let r = parse_range("102..106").unwrap();
+        let c = compare(&b, &a, Some(r), 1, 200, 0).unwrap();
+        assert_eq!((c.episodes, c.episode_range), (4, Some(r)));
+        assert!((c.metrics[0].shrinkage - 0.5).abs() < 1e-12);
+        let all = compare(&b, &a, None, 1, 200, 0).unwrap();
+        assert!((all.metrics[0].shrinkage - (1.0 - 8.0 / 10.0)).abs() < 1e-12);
+        let e = compare(&b, &a, Some(parse_range("0..100").unwrap()), 1, 10, 0)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("0..100"), "{e}");
+        for bad in ["", "5", "7..7", "9..3", "a..4", "1..b"] {
+            assert!(parse_range(bad).is_err(), "{bad:?}");
+        }
+        assert_eq!(
+            parse_range(" 3 .. 8").unwrap(),
+            EpisodeRange { start: 3, end: 8 }
+        );
     }
 
     #[test]
     fn emd_is_compared_only_when_both_have_it() {
         let b = report("spring-mass", &[2.0, 3.0], true);
         let a = report("pgrd", &[1.0, 2.0], false);
-        let c = compare(&b, &a, 1, 10, 0).unwrap();
+        let c = compare(&b, &a, None, 1, 10, 0).unwrap();
         let names: Vec<_> = c.metrics.iter().map(|m| m.metric.as_str()).collect();
         assert_eq!(names, ["mde_cm", "chamfer_cm"]);
     }
