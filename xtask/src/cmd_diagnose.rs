@@ -63,7 +63,7 @@ pub struct DiagnoseArgs {
     /// (`docs/gap.md`, "Racing the refits"). Default: off, unless `--budget-min` chooses it.
     #[arg(long)]
     pub race: Option<usize>,
-    /// Time budget, minutes on a 2-core laptop (0: none). When neither `--race` nor
+    /// Time budget, minutes on the reference 2-core host of `gap::SECONDS_PER_WORK` (0: none). When neither `--race` nor
     /// `--substep` is given and the diagnosis's estimated time (`gap::effort`: simulator work
     /// counted before the run, no clock, so the choice is the same on every run) is above it,
     /// the refits race (`--race 3`) and, if that is not enough, also take the spectral
@@ -461,7 +461,7 @@ pub fn estimate(args: &DiagnoseArgs) -> anyhow::Result<()> {
     } = setup(args)?;
     let chosen = choose_level(args.budget_min, &levels).map(|(k, _)| k);
     println!(
-        "estimated diagnosis time of {} on a 2-core laptop ({} training, {} held-out episodes):",
+        "estimated diagnosis time of {} on the reference 2-core host ({} training, {} held-out episodes):",
         data.meta.object,
         train.len(),
         val.len()

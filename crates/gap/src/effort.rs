@@ -45,21 +45,23 @@ impl Effort {
             * self.work_per_rollout
     }
 
-    /// Estimated wall time on the 2-core dev VM of `docs/BENCHMARKS.md` with both threads,
-    /// seconds: [`Effort::work`] times [`SECONDS_PER_WORK`].
+    /// Estimated wall time on the reference 2-core host of [`SECONDS_PER_WORK`] with both
+    /// threads, seconds: [`Effort::work`] times [`SECONDS_PER_WORK`].
     pub fn estimated_s(&self) -> f64 {
         self.work() * SECONDS_PER_WORK
     }
 }
 
-/// Wall seconds per unit of [`Effort::work`] on the 2-core dev VM with two threads: the
-/// median of the 18 default-size diagnoses of sessions 32–34 (six generated objects, with and
-/// without the race and the spectral substep; `docs/gap.md`, "Time budget"), whose measured
-/// times lie between 0.80 and 1.43 times the estimate. The refits move the stiffness, and
-/// with it the substeps, away from the fitted backbone's (the duster's and the teddy's
-/// upward, which makes them the dearest per unit), so the estimate is for choosing, not a
-/// promise; a faster machine takes less.
-pub const SECONDS_PER_WORK: f64 = 3.1e-9;
+/// Wall seconds per unit of [`Effort::work`] with two threads on the reference host, the
+/// 2-core AMD EPYC machine CI runs on: the median ratio of measured time to count over its four
+/// default-size diagnoses of sessions 45–46 (the paper, the teddy and the sloth at 2.14–2.17
+/// times the count at the earlier constant of 3.1 ns, the duster at 3.10; `docs/gap.md`, "Time
+/// budget"). The 2-core Intel VM of sessions 32–36 ran the same count at 3.1 ns (the median of
+/// 18 diagnoses, 0.80–1.43 times their estimates), so there the estimate is about twice the
+/// time taken. The refits move the stiffness, and with it the substeps, away from the fitted
+/// backbone's (the duster's and the teddy's upward, which makes them the dearest per unit), so
+/// the estimate is for choosing, not a promise.
+pub const SECONDS_PER_WORK: f64 = 6.7e-9;
 
 /// The work of diagnosing `train` / `val` from `base` with `config`, every rollout under
 /// `substep` (which need not be the scenes' own: the estimate can compare rules).
