@@ -63,12 +63,12 @@ pub struct DiagnoseArgs {
     /// (`docs/gap.md`, "Racing the refits"). Default: off, unless `--budget-min` chooses it.
     #[arg(long)]
     pub race: Option<usize>,
-    /// Time budget, minutes on the reference 2-core host of `gap::SECONDS_PER_WORK` (0: none). When neither `--race` nor
-    /// `--substep` is given and the diagnosis's estimated time (`gap::effort`: simulator work
-    /// counted before the run, no clock, so the choice is the same on every run) is above it,
-    /// the refits race (`--race 3`) and, if that is not enough, also take the spectral
-    /// substep; the command says so and `report.json` records it (`budget`). `docs/gap.md`,
-    /// "Time budget".
+    /// Time budget, minutes on the reference 2-core host of `gap::SECONDS_PER_WORK` (0:
+    /// none). When neither `--race` nor `--substep` is given and the diagnosis's estimated
+    /// time (`gap::effort`: simulator work counted before the run, no clock, so the choice is
+    /// the same on every run) is above it, the refits race (`--race 3`) and, if that is not
+    /// enough, also take the spectral substep; the command says so and `report.json` records
+    /// it (`budget`). `docs/gap.md`, "Time budget".
     #[arg(long, default_value_t = 10.0)]
     pub budget_min: f64,
     /// Print the estimated time of the diagnosis as given and with the speed options the

@@ -306,8 +306,8 @@ pub struct BenchCase {
     /// Wall time of the diagnosis, s.
     pub diagnose_wall_s: f64,
     /// The diagnosis's estimate before it ran (`gap::effort`: seconds with two threads on the
-    /// reference host; a bench on one thread takes about twice as long), for checking the count that
-    /// `diagnose --budget-min` chooses by.
+    /// reference host; a bench on one thread takes about twice as long), for checking the
+    /// count that `diagnose --budget-min` chooses by.
     pub diagnose_estimated_s: f64,
     /// The trained network's comparison (`--network-minutes`), when this case got one.
     pub network: Option<gap::Learnable>,
