@@ -38,7 +38,7 @@ pub enum StartArg {
 }
 
 /// `--loss`.
-#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
 pub enum LossArg {
     /// Mean squared distance to the truth, cm² (the paper's).
     Mse,
@@ -179,9 +179,10 @@ pub struct TrainArgs {
     #[arg(long, value_delimiter = ',', default_value = "0.1")]
     pub residual_scale: Vec<f32>,
     /// Loss of each rollout step: `mse` (cm², the paper's) or `distance` (cm, the MDE that
-    /// evaluation reports; robust to segments the bounded residual cannot fix).
-    #[arg(long, value_enum, default_value_t = LossArg::Mse)]
-    pub loss: LossArg,
+    /// evaluation reports; robust to segments the bounded residual cannot fix). Several,
+    /// comma-separated, make one more dimension of the recipe choice (needs `--holdout`).
+    #[arg(long, value_enum, value_delimiter = ',', default_value = "mse")]
+    pub loss: Vec<LossArg>,
     /// How gradients cross the backbone: `detached` (the paper's: each residual is scored on
     /// its own step's positions only), `free-flight` (a velocity residual is also charged for
     /// the displacement it keeps causing at later steps of the rollout, springs ignored) or
@@ -384,19 +385,24 @@ fn floats(v: &serde_json::Value, key: &str) -> Vec<f64> {
         .unwrap_or_default()
 }
 
-/// Trains the residual network and writes the run's files; with several bounds or start modes,
-/// one network per combination and the held-out episodes' choice (`crate::train_choice`).
+/// Trains the residual network and writes the run's files; with several bounds, start modes or
+/// losses, one network per combination and the held-out episodes' choice (`crate::train_choice`).
 pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
-    match (args.residual_scale.len(), args.start_from.len()) {
-        (0, _) => anyhow::bail!("--residual-scale needs a value"),
-        (_, 0) => anyhow::bail!("--start-from needs a value"),
-        (1, 1) => train_one(args),
+    match (
+        args.residual_scale.len(),
+        args.start_from.len(),
+        args.loss.len(),
+    ) {
+        (0, _, _) => anyhow::bail!("--residual-scale needs a value"),
+        (_, 0, _) => anyhow::bail!("--start-from needs a value"),
+        (_, _, 0) => anyhow::bail!("--loss needs a value"),
+        (1, 1, 1) => train_one(args),
         _ => crate::train_choice::run(args),
     }
 }
 
-/// Trains one network, with the bound `args.residual_scale[0]` and the start mode
-/// `args.start_from[0]`.
+/// Trains one network, with the bound `args.residual_scale[0]`, the start mode
+/// `args.start_from[0]` and the loss `args.loss[0]`.
 fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
     let t0 = Instant::now();
     // candle's matmul reads the thread count from RAYON_NUM_THREADS and runs on rayon's global
@@ -439,7 +445,7 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
         },
         refresh_every: args.refresh_every,
         seed: args.seed,
-        loss: match args.loss {
+        loss: match args.loss.first().copied().unwrap_or(LossArg::Mse) {
             LossArg::Mse => TrainLoss::Mse,
             LossArg::Distance => TrainLoss::Distance,
         },

@@ -1,14 +1,14 @@
-//! `cargo xtask train --residual-scale a,b,… [--start-from m,n,…] --holdout K`: one network per
-//! training recipe (residual bound × start mode), and the run keeps the one its held-out training
-//! episodes prefer.
+//! `cargo xtask train --residual-scale a,b,… [--start-from m,n,…] [--loss l,…] --holdout K`: one
+//! network per training recipe (loss × start mode × residual bound), and the run keeps the one
+//! its held-out training episodes prefer.
 //!
 //! The paper's bound (0.1 m/s per axis and step) caps what the network can correct, and how much
 //! room an object needs differs by an order of magnitude (`docs/residual.md`, "The bound's
 //! ceiling"); a wider bound also lets the network drift further. Where training segments start
 //! matters as much, and differently per object (recorded frames help some cables, hurt the
 //! sheets). So the recipe is chosen like a checkpoint: each candidate is trained in its own
-//! directory with held-out selection, and, in the order given (start modes as listed, bounds
-//! increasing within each), a candidate replaces the choice only when its selected network is a
+//! directory with held-out selection, and, in the order given (losses as listed, start modes as
+//! listed within each, bounds increasing within those), a candidate replaces the choice only when its selected network is a
 //! trained one and [`residual::clearly_better`] than the current choice on the same held-out
 //! episodes. The val split is never read.
 //!
@@ -21,12 +21,14 @@ use std::path::{Path, PathBuf};
 use anyhow::Context;
 use serde::Serialize;
 
-use crate::cmd_train::{StartArg, TrainArgs};
+use crate::cmd_train::{LossArg, StartArg, TrainArgs};
 use crate::report::write_json;
 
 /// One candidate recipe's outcome, in `<run>/train.json` (`recipe_choice`).
 #[derive(Clone, Debug, Serialize)]
 struct Candidate {
+    /// Its training loss (`--loss`).
+    loss: String,
     /// Where its training segments start (`--start-from`).
     start_from: String,
     /// The bound, m/s per axis and step (as written on the command line, not widened from f32).
@@ -53,22 +55,66 @@ fn checked_bounds(bounds: &[f32]) -> anyhow::Result<Vec<f32>> {
     Ok(sorted)
 }
 
-/// Distinct start modes, in the order given.
-fn distinct_starts(starts: &[StartArg]) -> Vec<StartArg> {
-    let mut out: Vec<StartArg> = Vec::with_capacity(starts.len());
-    for s in starts {
-        if !out.contains(s) {
-            out.push(*s);
+/// Distinct values (start modes, losses), in the order given.
+fn distinct<T: Copy + PartialEq>(values: &[T]) -> Vec<T> {
+    let mut out: Vec<T> = Vec::with_capacity(values.len());
+    for v in values {
+        if !out.contains(v) {
+            out.push(*v);
         }
     }
     out
 }
 
+/// The command-line name of a value (`guided-recorded`, `distance`, …).
+fn arg_name<T: clap::ValueEnum + std::fmt::Debug>(value: T) -> String {
+    value
+        .to_possible_value()
+        .map(|v| v.get_name().to_string())
+        .unwrap_or_else(|| format!("{value:?}"))
+}
+
 /// The command-line name of a start mode (`guided-recorded`, …).
 fn start_name(start: StartArg) -> String {
-    clap::ValueEnum::to_possible_value(&start)
-        .map(|v| v.get_name().to_string())
-        .unwrap_or_else(|| format!("{start:?}"))
+    arg_name(start)
+}
+
+/// One training recipe of the choice.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Recipe {
+    loss: LossArg,
+    start: StartArg,
+    bound: f32,
+}
+
+/// Every recipe, losses as given, start modes as given within each, bounds increasing within
+/// those.
+fn recipes(losses: &[LossArg], starts: &[StartArg], bounds: &[f32]) -> Vec<Recipe> {
+    losses
+        .iter()
+        .flat_map(|&loss| {
+            starts.iter().flat_map(move |&start| {
+                bounds
+                    .iter()
+                    .map(move |&bound| Recipe { loss, start, bound })
+            })
+        })
+        .collect()
+}
+
+/// A candidate's directory under the run: `bound_<b>` when only bounds vary (the bound-only
+/// choice's names), `<start>_bound_<b>` when start modes vary too, prefixed with `<loss>_` when
+/// losses vary.
+fn recipe_dir(run: &Path, recipe: Recipe, start_modes: usize, losses: usize) -> PathBuf {
+    let Recipe { loss, start, bound } = recipe;
+    let mut name = match start_modes {
+        1 => format!("bound_{bound}"),
+        _ => format!("{}_bound_{bound}", start_name(start)),
+    };
+    if losses > 1 {
+        name = format!("{}_{name}", arg_name(loss));
+    }
+    run.join(name)
 }
 
 /// Index of the chosen candidate (`per_episode` and `selected_step` in the candidates' order):
@@ -101,19 +147,18 @@ fn copy_atomic(from: &Path, to: &Path) -> anyhow::Result<()> {
 pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
     anyhow::ensure!(
         args.holdout > 0,
-        "several --residual-scale or --start-from values need --holdout K: the recipe is chosen \
-         on held-out training episodes, never on the val split"
+        "several --residual-scale, --start-from or --loss values need --holdout K: the recipe is \
+         chosen on held-out training episodes, never on the val split"
     );
     anyhow::ensure!(
         args.init_from.is_none(),
-        "--init-from starts one network; it cannot start several bounds or start modes"
+        "--init-from starts one network; it cannot start several bounds, start modes or losses"
     );
     let bounds = checked_bounds(&args.residual_scale)?;
-    let starts = distinct_starts(&args.start_from);
-    let recipes: Vec<(StartArg, f32)> = starts
-        .iter()
-        .flat_map(|&s| bounds.iter().map(move |&b| (s, b)))
-        .collect();
+    let starts = distinct(&args.start_from);
+    let losses = distinct(&args.loss);
+    let recipes = recipes(&losses, &starts, &bounds);
+    let shape = (starts.len(), losses.len());
     let backbone = args.run.join("backbone.json");
     anyhow::ensure!(
         backbone.exists(),
@@ -125,10 +170,10 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
         recipes
             .iter()
             .enumerate()
-            .map(|(k, &recipe)| train_candidate(args, starts.len(), k, &recipes, recipe, None))
+            .map(|(k, &recipe)| train_candidate(args, shape, k, &recipes, recipe, None))
             .collect::<anyhow::Result<Vec<_>>>()?
     } else {
-        train_at_once(args, starts.len(), &recipes, jobs)?
+        train_at_once(args, shape, &recipes, jobs)?
     };
     let errors: Vec<Vec<f64>> = candidates
         .iter()
@@ -142,10 +187,10 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
     let mut report: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(chosen.run.join("train.json"))?)?;
     report["recipe_choice"] = serde_json::json!({
-        "rule": "candidates in order (start modes as given, bounds increasing); a later one \
-                 replaces the choice when its trained network is clearly better on the held-out \
-                 episodes",
-        "chosen": { "start_from": chosen.start_from, "bound": chosen.bound },
+        "rule": "candidates in order (losses as given, start modes as given, bounds \
+                 increasing); a later one replaces the choice when its trained network is \
+                 clearly better on the held-out episodes",
+        "chosen": { "loss": chosen.loss, "start_from": chosen.start_from, "bound": chosen.bound },
         "candidates": candidates,
     });
     let report_path = args.run.join("train.json");
@@ -154,13 +199,14 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
         .iter()
         .map(|c| {
             format!(
-                "{} {} m/s {:.3} cm",
-                c.start_from, c.bound, c.heldout_mde_cm
+                "{} {} {} m/s {:.3} cm",
+                c.loss, c.start_from, c.bound, c.heldout_mde_cm
             )
         })
         .collect();
     println!(
-        "{} start, bound {} m/s chosen (held-out rollout MDE: {}) -> {}",
+        "{} loss, {} start, bound {} m/s chosen (held-out rollout MDE: {}) -> {}",
+        chosen.loss,
         chosen.start_from,
         chosen.bound,
         summary.join(", "),
@@ -173,25 +219,21 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
 /// selection. `progress` shares one display among candidates training at once.
 fn train_candidate(
     args: &TrainArgs,
-    start_modes: usize,
+    (start_modes, losses): (usize, usize),
     k: usize,
-    recipes: &[(StartArg, f32)],
-    (start, bound): (StartArg, f32),
+    recipes: &[Recipe],
+    recipe: Recipe,
     progress: Option<&indicatif::MultiProgress>,
 ) -> anyhow::Result<Candidate> {
-    // One start mode keeps the directories of the bound-only choice (`bound_<b>`).
-    let dir = match start_modes {
-        1 => args.run.join(format!("bound_{bound}")),
-        _ => args
-            .run
-            .join(format!("{}_bound_{bound}", start_name(start))),
-    };
+    let Recipe { loss, start, bound } = recipe;
+    let dir = recipe_dir(&args.run, recipe, start_modes, losses);
     std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
     copy_atomic(&args.run.join("backbone.json"), &dir.join("backbone.json"))?;
     if !args.quiet {
         crate::cmd_train::above_bars(progress, || {
             eprintln!(
-                "start {}, bound {bound} m/s ({} of {}) -> {}",
+                "loss {}, start {}, bound {bound} m/s ({} of {}) -> {}",
+                arg_name(loss),
                 start_name(start),
                 k + 1,
                 recipes.len(),
@@ -202,12 +244,16 @@ fn train_candidate(
     let mut one = args.clone();
     one.residual_scale = vec![bound];
     one.start_from = vec![start];
+    one.loss = vec![loss];
     one.run = dir.clone();
-    one.progress =
-        progress.map(|multi| (multi.clone(), format!("{} {bound} m/s ", start_name(start))));
+    one.progress = progress.map(|multi| {
+        let label = format!("{} {} {bound} m/s ", arg_name(loss), start_name(start));
+        (multi.clone(), label)
+    });
     crate::cmd_train::run(&one).with_context(|| {
         format!(
-            "training with start {} and bound {bound}",
+            "training with loss {}, start {} and bound {bound}",
+            arg_name(loss),
             start_name(start)
         )
     })?;
@@ -224,6 +270,7 @@ fn train_candidate(
         dir.join("train.json").display()
     );
     Ok(Candidate {
+        loss: arg_name(loss),
         start_from: start_name(start),
         bound: bound.to_string().parse()?,
         run: dir,
@@ -239,8 +286,8 @@ fn train_candidate(
 /// first failure in the recipes' order is returned.
 fn train_at_once(
     args: &TrainArgs,
-    start_modes: usize,
-    recipes: &[(StartArg, f32)],
+    shape: (usize, usize),
+    recipes: &[Recipe],
     jobs: usize,
 ) -> anyhow::Result<Vec<Candidate>> {
     use std::sync::Mutex;
@@ -266,9 +313,8 @@ fn train_at_once(
                 while !failed.load(Ordering::SeqCst) {
                     let k = next.fetch_add(1, Ordering::SeqCst);
                     let Some(&recipe) = recipes.get(k) else { break };
-                    let outcome = pool.install(|| {
-                        train_candidate(args, start_modes, k, recipes, recipe, Some(multi))
-                    });
+                    let outcome = pool
+                        .install(|| train_candidate(args, shape, k, recipes, recipe, Some(multi)));
                     if outcome.is_err() {
                         failed.store(true, Ordering::SeqCst);
                     }
@@ -330,6 +376,7 @@ mod tests {
         for extra in [
             ["--start-from", "guided,recorded"],
             ["--residual-scale", "0.1,1"],
+            ["--loss", "mse,distance"],
         ] {
             let cli = <Cli as clap::Parser>::try_parse_from(
                 ["train", "--data", "no-such-data", "--run", "no-such-run"]
@@ -346,7 +393,7 @@ mod tests {
     fn start_modes_keep_their_order_and_command_line_names() {
         use StartArg::*;
         assert_eq!(
-            distinct_starts(&[Recorded, Guided, Recorded, GuidedRecorded]),
+            distinct(&[Recorded, Guided, Recorded, GuidedRecorded]),
             vec![Recorded, Guided, GuidedRecorded]
         );
         let names: Vec<String> = [Guided, Recorded, GuidedRecorded, Rollout]
@@ -354,6 +401,61 @@ mod tests {
             .map(start_name)
             .collect();
         assert_eq!(names, ["guided", "recorded", "guided-recorded", "rollout"]);
+    }
+
+    #[test]
+    fn recipes_run_losses_then_start_modes_then_bounds_each_in_its_own_directory() {
+        use LossArg::*;
+        use StartArg::*;
+        let all = recipes(&[Distance, Mse], &[Recorded, Guided], &[0.1, 0.3]);
+        let order: Vec<(LossArg, StartArg, f32)> =
+            all.iter().map(|r| (r.loss, r.start, r.bound)).collect();
+        assert_eq!(
+            order,
+            [
+                (Distance, Recorded, 0.1),
+                (Distance, Recorded, 0.3),
+                (Distance, Guided, 0.1),
+                (Distance, Guided, 0.3),
+                (Mse, Recorded, 0.1),
+                (Mse, Recorded, 0.3),
+                (Mse, Guided, 0.1),
+                (Mse, Guided, 0.3),
+            ]
+        );
+        let run = Path::new("run");
+        let dir = |r: Recipe, starts, losses| recipe_dir(run, r, starts, losses);
+        // One loss keeps the names of earlier runs; several prefix the loss.
+        assert_eq!(dir(all[1], 1, 1), run.join("bound_0.3"));
+        assert_eq!(dir(all[2], 2, 1), run.join("guided_bound_0.1"));
+        assert_eq!(dir(all[2], 2, 2), run.join("distance_guided_bound_0.1"));
+        assert_eq!(dir(all[5], 1, 2), run.join("mse_bound_0.3"));
+        let names: Vec<PathBuf> = all.iter().map(|&r| dir(r, 2, 2)).collect();
+        assert!(
+            names
+                .iter()
+                .enumerate()
+                .all(|(i, n)| !names[..i].contains(n))
+        );
+        // The losses parse from one comma-separated flag, in the order given.
+        #[derive(clap::Parser)]
+        struct Cli {
+            #[command(flatten)]
+            train: TrainArgs,
+        }
+        let argv = [
+            "train",
+            "--data",
+            "d",
+            "--run",
+            "r",
+            "--loss",
+            "distance,mse",
+        ];
+        let cli = <Cli as clap::Parser>::try_parse_from(argv).unwrap();
+        assert_eq!(cli.train.loss, [Distance, Mse]);
+        let plain = <Cli as clap::Parser>::try_parse_from(&argv[..5]).unwrap();
+        assert_eq!(plain.train.loss, [Mse]);
     }
 
     #[test]
