@@ -8,9 +8,9 @@
 //! matters as much, and differently per object (recorded frames help some cables, hurt the
 //! sheets). So the recipe is chosen like a checkpoint: each candidate is trained in its own
 //! directory with held-out selection, and, in the order given (losses as listed, start modes as
-//! listed within each, bounds increasing within those), a candidate replaces the choice only when its selected network is a
-//! trained one and [`residual::clearly_better`] than the current choice on the same held-out
-//! episodes. The val split is never read.
+//! listed within each, bounds increasing within those), a candidate replaces the choice only
+//! when its selected network is a trained one and [`residual::clearly_better`] than the current
+//! choice on the same held-out episodes. The val split is never read.
 //!
 //! Candidates are independent, so `--jobs N` trains N of them at once (each in a thread with a
 //! rayon pool of its own); the candidates and the choice are bit for bit those of one at a
@@ -80,7 +80,7 @@ fn start_name(start: StartArg) -> String {
 }
 
 /// One training recipe of the choice.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug)]
 struct Recipe {
     loss: LossArg,
     start: StartArg,
@@ -355,6 +355,17 @@ fn train_at_once(
 mod tests {
     use super::*;
 
+    #[derive(clap::Parser)]
+    struct Cli {
+        #[command(flatten)]
+        train: TrainArgs,
+    }
+
+    /// `cargo xtask train` arguments parsed from `argv` (its first item the command's name).
+    fn parse<'a>(argv: impl IntoIterator<Item = &'a str>) -> TrainArgs {
+        <Cli as clap::Parser>::try_parse_from(argv).unwrap().train
+    }
+
     #[test]
     fn bounds_are_sorted_distinct_and_positive() {
         assert_eq!(
@@ -368,23 +379,17 @@ mod tests {
 
     #[test]
     fn several_recipes_without_held_out_episodes_are_refused() {
-        #[derive(clap::Parser)]
-        struct Cli {
-            #[command(flatten)]
-            train: TrainArgs,
-        }
         for extra in [
             ["--start-from", "guided,recorded"],
             ["--residual-scale", "0.1,1"],
             ["--loss", "mse,distance"],
         ] {
-            let cli = <Cli as clap::Parser>::try_parse_from(
+            let args = parse(
                 ["train", "--data", "no-such-data", "--run", "no-such-run"]
                     .into_iter()
                     .chain(extra),
-            )
-            .unwrap();
-            let err = crate::cmd_train::run(&cli.train).unwrap_err().to_string();
+            );
+            let err = crate::cmd_train::run(&args).unwrap_err().to_string();
             assert!(err.contains("--holdout"), "{err}");
         }
     }
@@ -438,11 +443,6 @@ mod tests {
                 .all(|(i, n)| !names[..i].contains(n))
         );
         // The losses parse from one comma-separated flag, in the order given.
-        #[derive(clap::Parser)]
-        struct Cli {
-            #[command(flatten)]
-            train: TrainArgs,
-        }
         let argv = [
             "train",
             "--data",
@@ -452,19 +452,12 @@ mod tests {
             "--loss",
             "distance,mse",
         ];
-        let cli = <Cli as clap::Parser>::try_parse_from(argv).unwrap();
-        assert_eq!(cli.train.loss, [Distance, Mse]);
-        let plain = <Cli as clap::Parser>::try_parse_from(&argv[..5]).unwrap();
-        assert_eq!(plain.train.loss, [Mse]);
+        assert_eq!(parse(argv).loss, [Distance, Mse]);
+        assert_eq!(parse(argv[..5].iter().copied()).loss, [Mse]);
     }
 
     #[test]
     fn candidates_trained_at_once_are_those_trained_one_after_another() {
-        #[derive(clap::Parser)]
-        struct Cli {
-            #[command(flatten)]
-            train: TrainArgs,
-        }
         let dir = std::env::temp_dir().join(format!("pgrd-train-jobs-{}", std::process::id()));
         let data = crate::cmd_fit::FIXTURE_ROPE;
         let fit = crate::cmd_fit::FitArgs::quick_rope_fixture(dir.join("one"));
@@ -493,8 +486,7 @@ mod tests {
                 jobs,
                 "--quiet",
             ];
-            let cli = <Cli as clap::Parser>::try_parse_from(argv).unwrap();
-            crate::cmd_train::run(&cli.train).unwrap();
+            crate::cmd_train::run(&parse(argv)).unwrap();
             let text = std::fs::read_to_string(run.join("train.json")).unwrap();
             serde_json::from_str::<serde_json::Value>(&text).unwrap()["recipe_choice"].clone()
         };
