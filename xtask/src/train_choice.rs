@@ -74,11 +74,6 @@ fn arg_name<T: clap::ValueEnum + std::fmt::Debug>(value: T) -> String {
         .unwrap_or_else(|| format!("{value:?}"))
 }
 
-/// The command-line name of a start mode (`guided-recorded`, …).
-fn start_name(start: StartArg) -> String {
-    arg_name(start)
-}
-
 /// One training recipe of the choice.
 #[derive(Clone, Copy, Debug)]
 struct Recipe {
@@ -109,7 +104,7 @@ fn recipe_dir(run: &Path, recipe: Recipe, start_modes: usize, losses: usize) -> 
     let Recipe { loss, start, bound } = recipe;
     let mut name = match start_modes {
         1 => format!("bound_{bound}"),
-        _ => format!("{}_bound_{bound}", start_name(start)),
+        _ => format!("{}_bound_{bound}", arg_name(start)),
     };
     if losses > 1 {
         name = format!("{}_{name}", arg_name(loss));
@@ -234,7 +229,7 @@ fn train_candidate(
             eprintln!(
                 "loss {}, start {}, bound {bound} m/s ({} of {}) -> {}",
                 arg_name(loss),
-                start_name(start),
+                arg_name(start),
                 k + 1,
                 recipes.len(),
                 dir.display()
@@ -247,14 +242,14 @@ fn train_candidate(
     one.loss = vec![loss];
     one.run = dir.clone();
     one.progress = progress.map(|multi| {
-        let label = format!("{} {} {bound} m/s ", arg_name(loss), start_name(start));
+        let label = format!("{} {} {bound} m/s ", arg_name(loss), arg_name(start));
         (multi.clone(), label)
     });
     crate::cmd_train::run(&one).with_context(|| {
         format!(
             "training with loss {}, start {} and bound {bound}",
             arg_name(loss),
-            start_name(start)
+            arg_name(start)
         )
     })?;
     let report: serde_json::Value =
@@ -271,7 +266,7 @@ fn train_candidate(
     );
     Ok(Candidate {
         loss: arg_name(loss),
-        start_from: start_name(start),
+        start_from: arg_name(start),
         bound: bound.to_string().parse()?,
         run: dir,
         selected_step: selected_step.unwrap_or(0),
@@ -403,7 +398,7 @@ mod tests {
         );
         let names: Vec<String> = [Guided, Recorded, GuidedRecorded, Rollout]
             .into_iter()
-            .map(start_name)
+            .map(arg_name)
             .collect();
         assert_eq!(names, ["guided", "recorded", "guided-recorded", "rollout"]);
     }
