@@ -718,8 +718,12 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
 }
 
 /// Prints a result line on stdout, without tearing the progress bars of candidates training at
-/// once.
+/// once; those lines carry the candidate's recipe, since another candidate's lines come between.
 fn say(args: &TrainArgs, line: String) {
+    let line = match &args.progress {
+        Some((_, label)) => format!("[{}] {line}", label.trim()),
+        None => line,
+    };
     above_bars(bars(args), || println!("{line}"));
 }
 

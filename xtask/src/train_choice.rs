@@ -35,8 +35,14 @@ struct Candidate {
     bound: f64,
     /// Its run directory.
     run: PathBuf,
+    /// Optimiser steps it ran (fewer than `--iterations` when `--max-minutes` stopped it).
+    steps_done: u64,
+    /// How its training ended (`done`, or `stopped by --max-minutes at step N`).
+    status: String,
     /// Optimiser step of its selected network (0: no trained network beat the untrained one).
     selected_step: u64,
+    /// Held-out rollout MDE of the backbone alone on the same episodes, cm.
+    backbone_heldout_mde_cm: f64,
     /// Held-out rollout MDE of its selected network, cm.
     heldout_mde_cm: f64,
     /// The same per held-out episode, cm.
@@ -175,7 +181,8 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
         .map(|c| c.heldout_episode_mde_cm.clone())
         .collect();
     let steps: Vec<u64> = candidates.iter().map(|c| c.selected_step).collect();
-    let chosen = &candidates[choose(&errors, &steps)];
+    let chosen_at = choose(&errors, &steps);
+    let chosen = &candidates[chosen_at];
     for file in ["residual.safetensors", "residual.json"] {
         copy_atomic(&chosen.run.join(file), &args.run.join(file))?;
     }
@@ -190,24 +197,51 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
     });
     let report_path = args.run.join("train.json");
     write_json(&report_path, &report)?;
-    let summary: Vec<String> = candidates
-        .iter()
-        .map(|c| {
-            format!(
-                "{} {} {} m/s {:.3} cm",
-                c.loss, c.start_from, c.bound, c.heldout_mde_cm
-            )
-        })
-        .collect();
+    print!("{}", summary_table(&candidates, chosen_at, args.iterations));
     println!(
-        "{} loss, {} start, bound {} m/s chosen (held-out rollout MDE: {}) -> {}",
+        "{} loss, {} start, bound {} m/s chosen -> {}",
         chosen.loss,
         chosen.start_from,
         chosen.bound,
-        summary.join(", "),
         report_path.display()
     );
     Ok(())
+}
+
+/// The candidates one per line, in the order they were judged, the chosen one marked: what a
+/// user reads to see how clear the choice was and which candidates a time limit cut short.
+fn summary_table(candidates: &[Candidate], chosen: usize, iterations: usize) -> String {
+    let backbone = candidates
+        .first()
+        .map_or(f64::NAN, |c| c.backbone_heldout_mde_cm);
+    let episodes = candidates
+        .first()
+        .map_or(0, |c| c.heldout_episode_mde_cm.len());
+    let mut out = format!(
+        "recipe choice: held-out rollout MDE on {episodes} training episodes (backbone {backbone:.3} cm)\n\
+         {:<10} {:<16} {:>7} {:>13} {:>9} {:>11}\n",
+        "loss", "start", "bound", "steps", "selected", "held-out"
+    );
+    let mut cut_any = false;
+    for (i, c) in candidates.iter().enumerate() {
+        let cut = c.status.starts_with("stopped");
+        cut_any |= cut;
+        let steps = format!(
+            "{} / {iterations}{}",
+            c.steps_done,
+            if cut { "*" } else { "" }
+        );
+        let bound = format!("{} m/s", c.bound);
+        let mark = if i == chosen { "  <- chosen" } else { "" };
+        out.push_str(&format!(
+            "{:<10} {:<16} {bound:>7} {steps:>13} {:>9} {:>8.3} cm{mark}\n",
+            c.loss, c.start_from, c.selected_step, c.heldout_mde_cm,
+        ));
+    }
+    if cut_any {
+        out.push_str("* stopped by --max-minutes\n");
+    }
+    out
 }
 
 /// Trains recipe `k` of `recipes` in its own directory under `args.run` and reads its held-out
@@ -259,8 +293,18 @@ fn train_candidate(
         .map(|a| a.iter().filter_map(serde_json::Value::as_f64).collect())
         .unwrap_or_default();
     let selected_step = report["selection"]["best_step"].as_u64();
+    let backbone_mde = report["selection"]["backbone_mde_cm"].as_f64();
+    let steps_done = report["steps_done"].as_u64();
+    let (Some(selected_step), Some(backbone_mde), Some(steps_done)) =
+        (selected_step, backbone_mde, steps_done)
+    else {
+        anyhow::bail!(
+            "{} records no held-out selection",
+            dir.join("train.json").display()
+        );
+    };
     anyhow::ensure!(
-        !per_episode.is_empty() && selected_step.is_some(),
+        !per_episode.is_empty(),
         "{} records no held-out selection",
         dir.join("train.json").display()
     );
@@ -269,7 +313,10 @@ fn train_candidate(
         start_from: arg_name(start),
         bound: bound.to_string().parse()?,
         run: dir,
-        selected_step: selected_step.unwrap_or(0),
+        steps_done,
+        status: report["status"].as_str().unwrap_or("unknown").to_string(),
+        selected_step,
+        backbone_heldout_mde_cm: backbone_mde,
         heldout_mde_cm: per_episode.iter().sum::<f64>() / per_episode.len() as f64,
         heldout_episode_mde_cm: per_episode,
     })
@@ -495,6 +542,7 @@ mod tests {
                 "start_from",
                 "bound",
                 "selected_step",
+                "steps_done",
                 "heldout_episode_mde_cm",
             ] {
                 assert_eq!(a[key], b[key], "{key}");
@@ -507,6 +555,42 @@ mod tests {
             assert!(net(a) == net(b), "{}", a["run"]);
         }
         std::fs::remove_dir_all(&dir).ok();
+    }
+
+    #[test]
+    fn the_summary_marks_the_choice_and_the_candidates_a_time_limit_cut() {
+        let candidate = |loss: &str, bound: f64, steps: u64, status: &str, mde: f64| Candidate {
+            loss: loss.to_string(),
+            start_from: "recorded".to_string(),
+            bound,
+            run: PathBuf::from("run"),
+            steps_done: steps,
+            status: status.to_string(),
+            selected_step: steps / 2,
+            backbone_heldout_mde_cm: 5.22,
+            heldout_mde_cm: mde,
+            heldout_episode_mde_cm: vec![mde; 20],
+        };
+        let all = [
+            candidate("mse", 0.1, 1000, "done", 4.2051),
+            candidate(
+                "distance",
+                0.3,
+                861,
+                "stopped by --max-minutes at step 861",
+                3.9,
+            ),
+        ];
+        let table = summary_table(&all, 1, 1000);
+        let lines: Vec<&str> = table.lines().collect();
+        assert_eq!(lines.len(), 5, "{table}");
+        assert!(lines[0].contains("20 training episodes (backbone 5.220 cm)"));
+        assert!(lines[2].contains("1000 / 1000") && lines[2].contains("4.205 cm"));
+        assert!(!lines[2].contains("chosen") && !lines[2].contains('*'));
+        assert!(lines[3].contains("861 / 1000*") && lines[3].ends_with("<- chosen"));
+        assert_eq!(lines[4], "* stopped by --max-minutes");
+        // Without a cut candidate there is no footnote.
+        assert_eq!(summary_table(&all[..1], 0, 1000).lines().count(), 3);
     }
 
     #[test]
