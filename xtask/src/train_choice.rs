@@ -292,22 +292,17 @@ fn train_candidate(
         .as_array()
         .map(|a| a.iter().filter_map(serde_json::Value::as_f64).collect())
         .unwrap_or_default();
-    let selected_step = report["selection"]["best_step"].as_u64();
-    let backbone_mde = report["selection"]["backbone_mde_cm"].as_f64();
-    let steps_done = report["steps_done"].as_u64();
-    let (Some(selected_step), Some(backbone_mde), Some(steps_done)) =
-        (selected_step, backbone_mde, steps_done)
-    else {
+    let (Some(selected_step), Some(backbone_mde), Some(steps_done), false) = (
+        report["selection"]["best_step"].as_u64(),
+        report["selection"]["backbone_mde_cm"].as_f64(),
+        report["steps_done"].as_u64(),
+        per_episode.is_empty(),
+    ) else {
         anyhow::bail!(
             "{} records no held-out selection",
             dir.join("train.json").display()
         );
     };
-    anyhow::ensure!(
-        !per_episode.is_empty(),
-        "{} records no held-out selection",
-        dir.join("train.json").display()
-    );
     Ok(Candidate {
         loss: arg_name(loss),
         start_from: arg_name(start),
