@@ -215,6 +215,13 @@ pub struct TrainArgs {
     /// a shared machine may stop it earlier).
     #[arg(long, default_value_t = 1)]
     pub jobs: usize,
+    /// With the recipe choice: when the chosen candidate is a trained network at the widest
+    /// bound tried for its loss and start mode (the ladder's edge), train that loss and start
+    /// mode at this many wider bounds, each three times the one before, and let the same rule
+    /// choose again among all (0: the ladder as given). See docs/residual.md, "Widening the
+    /// ladder".
+    #[arg(long, default_value_t = 0)]
+    pub widen_bounds: usize,
     /// Print only the final line.
     #[arg(long)]
     pub quiet: bool,
@@ -396,7 +403,7 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
         (0, _, _) => anyhow::bail!("--residual-scale needs a value"),
         (_, 0, _) => anyhow::bail!("--start-from needs a value"),
         (_, _, 0) => anyhow::bail!("--loss needs a value"),
-        (1, 1, 1) => train_one(args),
+        (1, 1, 1) if args.widen_bounds == 0 => train_one(args),
         _ => crate::train_choice::run(args),
     }
 }

@@ -12,6 +12,11 @@
 //! when its selected network is a trained one and [`residual::clearly_better`] than the current
 //! choice on the same held-out episodes. The val split is never read.
 //!
+//! A ladder's best rung may be its widest: with `--widen-bounds N`, when the choice is a
+//! trained network at the widest bound of its loss and start mode, that recipe is trained at
+//! N wider bounds (three, nine, … times it; `--jobs` at a time) and judged after the others by
+//! the same rule.
+//!
 //! Candidates are independent, so `--jobs N` trains N of them at once (each in a thread with a
 //! rayon pool of its own); the candidates and the choice are bit for bit those of one at a
 //! time when every candidate finishes its iterations (tested).
@@ -137,6 +142,81 @@ fn choose(per_episode: &[Vec<f64>], selected_step: &[u64]) -> usize {
     best
 }
 
+/// [`choose`] over the candidates' held-out records.
+fn choose_among(candidates: &[Candidate]) -> usize {
+    let errors: Vec<Vec<f64>> = candidates
+        .iter()
+        .map(|c| c.heldout_episode_mde_cm.clone())
+        .collect();
+    let steps: Vec<u64> = candidates.iter().map(|c| c.selected_step).collect();
+    choose(&errors, &steps)
+}
+
+/// A bound as the command line would write it (0.9, not 0.8999999761581421).
+fn as_written(bound: f32) -> f64 {
+    bound.to_string().parse().unwrap_or(f64::from(bound))
+}
+
+/// Three times `bound`, rounded to six significant digits so that a ladder 0.1, 0.3 widens to
+/// 0.9 and 2.7 rather than to their f32 neighbours.
+fn three_times(bound: f32) -> f32 {
+    let wider = 3.0 * f64::from(bound);
+    format!("{wider:.5e}").parse().unwrap_or(wider as f32)
+}
+
+/// The next `count` rungs of a widened ladder: when the chosen candidate (`recipes[chosen]`,
+/// `trained` when its selected network is not the untrained one) sits at the widest bound of
+/// its loss and start mode, that loss and start mode at three, nine, … times that bound; empty
+/// otherwise (a choice inside the ladder, or no trained network chosen, needs no wider one).
+fn wider_rungs(recipes: &[Recipe], chosen: usize, trained: bool, count: usize) -> Vec<Recipe> {
+    let Some(&Recipe { loss, start, bound }) = recipes.get(chosen) else {
+        return Vec::new();
+    };
+    let widest = recipes
+        .iter()
+        .filter(|r| r.loss == loss && r.start == start)
+        .map(|r| r.bound)
+        .fold(bound, f32::max);
+    if !trained || bound < widest {
+        return Vec::new();
+    }
+    std::iter::successors(Some(three_times(widest)), |&b| Some(three_times(b)))
+        .take(count)
+        .map(|bound| Recipe { loss, start, bound })
+        .collect()
+}
+
+/// Widens the ladder (`--widen-bounds room`): when the choice among `candidates` (one per
+/// recipe, in order) is a trained network at its recipe's widest bound, appends `room` wider
+/// rungs of that recipe ([`wider_rungs`]), trains them with `train` (given every recipe and the
+/// range to train) and returns the bounds added; the caller chooses again among all. One
+/// batch, whatever `--jobs` is, so the rungs tried depend on the held-out errors alone.
+fn widen(
+    recipes: &mut Vec<Recipe>,
+    candidates: &mut Vec<Candidate>,
+    room: usize,
+    train: impl FnOnce(&[Recipe], std::ops::Range<usize>) -> anyhow::Result<Vec<Candidate>>,
+) -> anyhow::Result<Vec<f64>> {
+    let chosen = choose_among(candidates);
+    let trained = candidates.get(chosen).is_some_and(|c| c.selected_step > 0);
+    let next = wider_rungs(recipes, chosen, trained, room);
+    if next.is_empty() {
+        return Ok(Vec::new());
+    }
+    let from = recipes.len();
+    let widened = next.iter().map(|r| as_written(r.bound)).collect();
+    recipes.extend(next);
+    let more = train(recipes, from..recipes.len())?;
+    anyhow::ensure!(
+        more.len() == recipes.len() - from,
+        "{} of {} wider candidates ran",
+        more.len(),
+        recipes.len() - from
+    );
+    candidates.extend(more);
+    Ok(widened)
+}
+
 /// Copies `from` to `to` through a temporary file and a rename.
 fn copy_atomic(from: &Path, to: &Path) -> anyhow::Result<()> {
     let bytes = std::fs::read(from).with_context(|| format!("reading {}", from.display()))?;
@@ -148,8 +228,8 @@ fn copy_atomic(from: &Path, to: &Path) -> anyhow::Result<()> {
 pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
     anyhow::ensure!(
         args.holdout > 0,
-        "several --residual-scale, --start-from or --loss values need --holdout K: the recipe is \
-         chosen on held-out training episodes, never on the val split"
+        "several --residual-scale, --start-from or --loss values, or --widen-bounds, need \
+         --holdout K: the recipe is chosen on held-out training episodes, never on the val split"
     );
     anyhow::ensure!(
         args.init_from.is_none(),
@@ -158,7 +238,7 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
     let bounds = checked_bounds(&args.residual_scale)?;
     let starts = distinct(&args.start_from);
     let losses = distinct(&args.loss);
-    let recipes = recipes(&losses, &starts, &bounds);
+    let mut recipes = recipes(&losses, &starts, &bounds);
     let shape = (starts.len(), losses.len());
     let backbone = args.run.join("backbone.json");
     anyhow::ensure!(
@@ -166,22 +246,26 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
         "{} not found: fit the backbone first (cargo xtask fit)",
         backbone.display()
     );
-    let jobs = args.jobs.clamp(1, recipes.len());
-    let candidates = if jobs == 1 {
-        recipes
-            .iter()
-            .enumerate()
-            .map(|(k, &recipe)| train_candidate(args, shape, k, &recipes, recipe, None))
-            .collect::<anyhow::Result<Vec<_>>>()?
-    } else {
-        train_at_once(args, shape, &recipes, jobs)?
-    };
-    let errors: Vec<Vec<f64>> = candidates
-        .iter()
-        .map(|c| c.heldout_episode_mde_cm.clone())
-        .collect();
-    let steps: Vec<u64> = candidates.iter().map(|c| c.selected_step).collect();
-    let chosen_at = choose(&errors, &steps);
+    let mut candidates = train_range(args, shape, &recipes, 0..recipes.len())?;
+    let widened = widen(
+        &mut recipes,
+        &mut candidates,
+        args.widen_bounds,
+        |recipes, todo| {
+            if !args.quiet {
+                let list: Vec<String> = recipes[todo.clone()]
+                    .iter()
+                    .map(|r| format!("{} m/s", r.bound))
+                    .collect();
+                eprintln!(
+                    "the choice is a trained network at the ladder's edge: widening to {}",
+                    list.join(", ")
+                );
+            }
+            train_range(args, shape, recipes, todo)
+        },
+    )?;
+    let chosen_at = choose_among(&candidates);
     let chosen = &candidates[chosen_at];
     for file in ["residual.safetensors", "residual.json"] {
         copy_atomic(&chosen.run.join(file), &args.run.join(file))?;
@@ -190,8 +274,9 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
         serde_json::from_str(&std::fs::read_to_string(chosen.run.join("train.json"))?)?;
     report["recipe_choice"] = serde_json::json!({
         "rule": "candidates in order (losses as given, start modes as given, bounds \
-                 increasing); a later one replaces the choice when its trained network is \
-                 clearly better on the held-out episodes",
+                 increasing; bounds added by --widen-bounds after them); a later one replaces \
+                 the choice when its trained network is clearly better on the held-out episodes",
+        "widened_bounds": widened,
         "chosen": { "loss": chosen.loss, "start_from": chosen.start_from, "bound": chosen.bound },
         "candidates": candidates,
     });
@@ -274,6 +359,8 @@ fn train_candidate(
     one.residual_scale = vec![bound];
     one.start_from = vec![start];
     one.loss = vec![loss];
+    // A candidate is one network: it neither chooses nor widens again.
+    one.widen_bounds = 0;
     one.run = dir.clone();
     one.progress = progress.map(|multi| {
         let label = format!("{} {} {bound} m/s ", arg_name(loss), arg_name(start));
@@ -317,7 +404,23 @@ fn train_candidate(
     })
 }
 
-/// Trains the recipes `jobs` at a time, each worker thread in a rayon pool of its own with
+/// Trains `recipes[todo]`, `args.jobs` at a time, and returns their candidates in order.
+fn train_range(
+    args: &TrainArgs,
+    shape: (usize, usize),
+    recipes: &[Recipe],
+    todo: std::ops::Range<usize>,
+) -> anyhow::Result<Vec<Candidate>> {
+    let jobs = args.jobs.clamp(1, todo.len().max(1));
+    if jobs == 1 {
+        todo.map(|k| train_candidate(args, shape, k, recipes, recipes[k], None))
+            .collect()
+    } else {
+        train_at_once(args, shape, recipes, todo, jobs)
+    }
+}
+
+/// Trains `recipes[todo]` `jobs` at a time, each worker thread in a rayon pool of its own with
 /// `args.threads` workers (so one candidate's rollouts never wait for another's), and returns
 /// the candidates in the recipes' order. After a failure no further candidate starts; the
 /// first failure in the recipes' order is returned.
@@ -325,6 +428,7 @@ fn train_at_once(
     args: &TrainArgs,
     shape: (usize, usize),
     recipes: &[Recipe],
+    todo: std::ops::Range<usize>,
     jobs: usize,
 ) -> anyhow::Result<Vec<Candidate>> {
     use std::sync::Mutex;
@@ -339,16 +443,20 @@ fn train_at_once(
         .collect::<Result<Vec<_>, _>>()
         .context("building the candidates' thread pools")?;
     let multi = indicatif::MultiProgress::new();
-    let next = AtomicUsize::new(0);
+    let (first, end) = (todo.start, todo.end);
+    let next = AtomicUsize::new(first);
     let failed = AtomicBool::new(false);
     let results: Mutex<Vec<Option<anyhow::Result<Candidate>>>> =
-        Mutex::new(recipes.iter().map(|_| None).collect());
+        Mutex::new(todo.clone().map(|_| None).collect());
     std::thread::scope(|scope| {
         for pool in &pools {
             let (next, failed, results, multi) = (&next, &failed, &results, &multi);
             scope.spawn(move || {
                 while !failed.load(Ordering::SeqCst) {
                     let k = next.fetch_add(1, Ordering::SeqCst);
+                    if k >= end {
+                        break;
+                    }
                     let Some(&recipe) = recipes.get(k) else { break };
                     let outcome = pool
                         .install(|| train_candidate(args, shape, k, recipes, recipe, Some(multi)));
@@ -356,7 +464,7 @@ fn train_at_once(
                         failed.store(true, Ordering::SeqCst);
                     }
                     if let Ok(mut r) = results.lock() {
-                        r[k] = Some(outcome);
+                        r[k - first] = Some(outcome);
                     }
                 }
             });
@@ -365,7 +473,7 @@ fn train_at_once(
     // A panicking worker re-raises its panic when the scope ends, so the lock is not poisoned
     // here; take the results either way.
     let results = results.into_inner().unwrap_or_else(|p| p.into_inner());
-    let mut candidates = Vec::with_capacity(recipes.len());
+    let mut candidates = Vec::with_capacity(todo.len());
     let mut first_failure = None;
     for outcome in results {
         match outcome {
@@ -380,10 +488,10 @@ fn train_at_once(
         return Err(e);
     }
     anyhow::ensure!(
-        candidates.len() == recipes.len(),
+        candidates.len() == todo.len(),
         "only {} of {} candidates ran",
         candidates.len(),
-        recipes.len()
+        todo.len()
     );
     Ok(candidates)
 }
@@ -499,9 +607,15 @@ mod tests {
         let data = crate::cmd_fit::FIXTURE_ROPE;
         let fit = crate::cmd_fit::FitArgs::quick_rope_fixture(dir.join("one"));
         crate::cmd_fit::run(&fit).unwrap();
-        std::fs::create_dir_all(dir.join("two")).unwrap();
-        std::fs::copy(dir.join("one/backbone.json"), dir.join("two/backbone.json")).unwrap();
-        let train = |run: &str, jobs: &str| -> serde_json::Value {
+        for run in ["two", "three"] {
+            std::fs::create_dir_all(dir.join(run)).unwrap();
+            std::fs::copy(
+                dir.join("one/backbone.json"),
+                dir.join(run).join("backbone.json"),
+            )
+            .unwrap();
+        }
+        let train = |run: &str, jobs: &str, widen: &str| -> serde_json::Value {
             let run = dir.join(run);
             let argv = [
                 "train",
@@ -521,14 +635,16 @@ mod tests {
                 "guided,recorded",
                 "--jobs",
                 jobs,
+                "--widen-bounds",
+                widen,
                 "--quiet",
             ];
             crate::cmd_train::run(&parse(argv)).unwrap();
             let text = std::fs::read_to_string(run.join("train.json")).unwrap();
             serde_json::from_str::<serde_json::Value>(&text).unwrap()["recipe_choice"].clone()
         };
-        let one = train("one", "1");
-        let two = train("two", "2");
+        let one = train("one", "1", "0");
+        let two = train("two", "2", "0");
         let candidates = one["candidates"].as_array().unwrap();
         assert_eq!(candidates.len(), 4);
         assert_eq!(one["chosen"], two["chosen"]);
@@ -549,6 +665,28 @@ mod tests {
             };
             assert!(net(a) == net(b), "{}", a["run"]);
         }
+        // Widening keeps the ladder's candidates, each in its own directory of the run, and
+        // trains 3 m/s only when the choice is a trained network at 1 m/s.
+        let three = train("three", "2", "1");
+        let widened = three["candidates"].as_array().unwrap();
+        for (a, b) in candidates.iter().zip(widened) {
+            assert_eq!(a["heldout_episode_mde_cm"], b["heldout_episode_mde_cm"]);
+        }
+        for c in widened {
+            let run = std::path::PathBuf::from(c["run"].as_str().unwrap());
+            assert_eq!(run.parent(), Some(dir.join("three").as_path()));
+        }
+        let chosen = candidates
+            .iter()
+            .find(|c| {
+                c["start_from"] == one["chosen"]["start_from"]
+                    && c["bound"] == one["chosen"]["bound"]
+            })
+            .unwrap();
+        let edge = chosen["bound"] == 1.0 && chosen["selected_step"].as_u64() > Some(0);
+        let expected: Vec<f64> = if edge { vec![3.0] } else { vec![] };
+        assert_eq!(three["widened_bounds"], serde_json::json!(expected));
+        assert_eq!(widened.len(), 4 + expected.len());
         std::fs::remove_dir_all(&dir).ok();
     }
 
@@ -618,6 +756,115 @@ mod tests {
         // An untrained (step-0) network never replaces the choice, however its errors compare.
         assert_eq!(choose(&[narrow.clone(), wide.clone()], &[250, 0]), 0);
         assert_eq!(choose(&[narrow, wide, widest], &[0, 0, 500]), 2);
+    }
+
+    #[test]
+    fn a_ladder_widens_by_threes_only_past_a_trained_choice_at_its_edge() {
+        use LossArg::*;
+        use StartArg::*;
+        let widened: Vec<f32> = [0.1, 0.3, 1.0, 3.0].map(three_times).to_vec();
+        assert_eq!(widened, [0.3, 0.9, 3.0, 9.0]);
+        assert_eq!(as_written(0.9), 0.9);
+        // Guided at 0.1 and 1, recorded at 0.1 and 0.3.
+        let ladder = [
+            Recipe {
+                loss: Mse,
+                start: Guided,
+                bound: 0.1,
+            },
+            Recipe {
+                loss: Mse,
+                start: Guided,
+                bound: 1.0,
+            },
+            Recipe {
+                loss: Mse,
+                start: Recorded,
+                bound: 0.1,
+            },
+            Recipe {
+                loss: Mse,
+                start: Recorded,
+                bound: 0.3,
+            },
+        ];
+        let bounds = |r: Vec<Recipe>| -> Vec<(StartArg, f32)> {
+            r.iter().map(|r| (r.start, r.bound)).collect()
+        };
+        // At the edge of its own start mode, trained: the next rungs of that start mode.
+        assert_eq!(
+            bounds(wider_rungs(&ladder, 1, true, 2)),
+            [(Guided, 3.0), (Guided, 9.0)]
+        );
+        assert_eq!(bounds(wider_rungs(&ladder, 3, true, 1)), [(Recorded, 0.9)]);
+        // Inside the ladder, untrained, nothing asked, or no such candidate: none.
+        assert!(wider_rungs(&ladder, 0, true, 2).is_empty());
+        assert!(wider_rungs(&ladder, 2, true, 2).is_empty());
+        assert!(wider_rungs(&ladder, 1, false, 2).is_empty());
+        assert!(wider_rungs(&ladder, 1, true, 0).is_empty());
+        assert!(wider_rungs(&ladder, 9, true, 2).is_empty());
+        // The widened rungs of a start mode are its widest from then on.
+        let mut longer = ladder.to_vec();
+        longer.extend(wider_rungs(&ladder, 1, true, 1));
+        assert_eq!(bounds(wider_rungs(&longer, 4, true, 1)), [(Guided, 9.0)]);
+        assert!(wider_rungs(&longer, 1, true, 1).is_empty());
+        // The flag parses; with one recipe it still goes through the choice.
+        let args = parse(["train", "--data", "d", "--run", "r", "--widen-bounds", "2"]);
+        assert_eq!(args.widen_bounds, 2);
+        let err = crate::cmd_train::run(&args).unwrap_err().to_string();
+        assert!(err.contains("--holdout"), "{err}");
+    }
+
+    #[test]
+    fn widened_rungs_are_judged_in_order_by_the_same_rule() {
+        use LossArg::*;
+        use StartArg::*;
+        // Held-out errors by bound: better up to 3 m/s, worse at 9, best at 27, worse beyond.
+        let errors = |bound: f32| -> Vec<f64> {
+            let level = match bound {
+                b if b < 0.2 => 5.0,
+                b if b < 0.5 => 4.0,
+                b if b < 2.0 => 3.0,
+                b if b < 5.0 => 2.0,
+                b if b < 20.0 => 2.5,
+                b if b < 50.0 => 1.5,
+                _ => 2.5,
+            };
+            (0..6).map(|e| level + 0.01 * f64::from(e)).collect()
+        };
+        let candidate = |r: &Recipe| Candidate {
+            loss: arg_name(r.loss),
+            start_from: arg_name(r.start),
+            bound: as_written(r.bound),
+            run: PathBuf::from(format!("bound_{}", r.bound)),
+            steps_done: 10,
+            status: "done".into(),
+            selected_step: 10,
+            backbone_heldout_mde_cm: 6.0,
+            heldout_mde_cm: errors(r.bound).iter().sum::<f64>() / 6.0,
+            heldout_episode_mde_cm: errors(r.bound),
+        };
+        let run = |ladder: &[f32], room: usize| -> (Vec<f64>, Vec<usize>, f64) {
+            let mut recipes = recipes(&[Mse], &[Guided], ladder);
+            let mut candidates: Vec<Candidate> = recipes.iter().map(candidate).collect();
+            let mut batches = Vec::new();
+            let widened = widen(&mut recipes, &mut candidates, room, |all, todo| {
+                batches.push(todo.len());
+                Ok(all[todo].iter().map(candidate).collect())
+            })
+            .unwrap();
+            let chosen = candidates[choose_among(&candidates)].bound;
+            (widened, batches, chosen)
+        };
+        // One batch of the rungs asked: 9 m/s loses to 3, and 27 still replaces 3.
+        assert_eq!(run(&[0.1, 0.3, 1.0], 2), (vec![3.0, 9.0], vec![2], 3.0));
+        assert_eq!(
+            run(&[0.1, 0.3, 1.0], 4),
+            (vec![3.0, 9.0, 27.0, 81.0], vec![4], 27.0)
+        );
+        // None asked, or the choice inside the ladder: the ladder as given.
+        assert_eq!(run(&[0.1, 0.3, 1.0], 0), (vec![], vec![], 1.0));
+        assert_eq!(run(&[0.3, 3.0, 9.0], 2), (vec![], vec![], 3.0));
     }
 
     #[test]
