@@ -222,6 +222,12 @@ pub struct TrainArgs {
     /// ladder".
     #[arg(long, default_value_t = 0)]
     pub widen_bounds: usize,
+    /// With the recipe choice: the same at the other end of the ladder. When the chosen
+    /// candidate (after any widening) is a trained network at the narrowest bound tried for its
+    /// loss and start mode, train that loss and start mode at this many narrower bounds, each a
+    /// third of the one before, judged after every other candidate by the same rule (0: none).
+    #[arg(long, default_value_t = 0)]
+    pub narrow_bounds: usize,
     /// Print only the final line.
     #[arg(long)]
     pub quiet: bool,
@@ -403,7 +409,7 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
         (0, _, _) => anyhow::bail!("--residual-scale needs a value"),
         (_, 0, _) => anyhow::bail!("--start-from needs a value"),
         (_, _, 0) => anyhow::bail!("--loss needs a value"),
-        (1, 1, 1) if args.widen_bounds == 0 => train_one(args),
+        (1, 1, 1) if args.widen_bounds == 0 && args.narrow_bounds == 0 => train_one(args),
         _ => crate::train_choice::run(args),
     }
 }

@@ -15,7 +15,8 @@
 //! A ladder's best rung may be its widest: with `--widen-bounds N`, when the choice is a
 //! trained network at the widest bound of its loss and start mode, that recipe is trained at
 //! N wider bounds (three, nine, … times it; `--jobs` at a time) and judged after the others by
-//! the same rule.
+//! the same rule. `--narrow-bounds N` does the same at the narrowest bound (a third, a ninth, …
+//! of it), after any widening.
 //!
 //! Candidates are independent, so `--jobs N` trains N of them at once (each in a thread with a
 //! rayon pool of its own); the candidates and the choice are bit for bit those of one at a
@@ -157,64 +158,95 @@ fn as_written(bound: f32) -> f64 {
     bound.to_string().parse().unwrap_or(f64::from(bound))
 }
 
-/// Three times `bound`, rounded to six significant digits so that a ladder 0.1, 0.3 widens to
-/// 0.9 and 2.7 rather than to their f32 neighbours.
-fn three_times(bound: f32) -> f32 {
-    let wider = 3.0 * f64::from(bound);
-    format!("{wider:.5e}").parse().unwrap_or(wider as f32)
+/// Which end of a ladder to extend.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Edge {
+    /// Past the widest bound: three, nine, … times it (`--widen-bounds`).
+    Wide,
+    /// Below the narrowest bound: a third, a ninth, … of it (`--narrow-bounds`).
+    Narrow,
 }
 
-/// The next `count` rungs of a widened ladder: when the chosen candidate (`recipes[chosen]`,
-/// `trained` when its selected network is not the untrained one) sits at the widest bound of
-/// its loss and start mode, that loss and start mode at three, nine, … times that bound; empty
-/// otherwise (a choice inside the ladder, or no trained network chosen, needs no wider one).
-fn wider_rungs(recipes: &[Recipe], chosen: usize, trained: bool, count: usize) -> Vec<Recipe> {
+/// `bound` times `factor`, rounded to six significant digits so that a ladder 0.1, 0.3 widens to
+/// 0.9 and 2.7 (and narrows to 0.0333333) rather than to their f32 neighbours.
+fn scaled(bound: f32, factor: f64) -> f32 {
+    let next = factor * f64::from(bound);
+    format!("{next:.5e}").parse().unwrap_or(next as f32)
+}
+
+/// Three times `bound` ([`scaled`]).
+fn three_times(bound: f32) -> f32 {
+    scaled(bound, 3.0)
+}
+
+/// A third of `bound` ([`scaled`]).
+fn a_third(bound: f32) -> f32 {
+    scaled(bound, 1.0 / 3.0)
+}
+
+/// The next `count` rungs past one end of a ladder: when the chosen candidate
+/// (`recipes[chosen]`, `trained` when its selected network is not the untrained one) sits at
+/// the `edge` bound of its loss and start mode (widest or narrowest), that loss and start mode
+/// at three, nine, … times (or a third, a ninth, … of) that bound; empty otherwise (a choice
+/// inside the ladder, or no trained network chosen, needs no further rung).
+fn edge_rungs(
+    recipes: &[Recipe],
+    chosen: usize,
+    trained: bool,
+    count: usize,
+    edge: Edge,
+) -> Vec<Recipe> {
     let Some(&Recipe { loss, start, bound }) = recipes.get(chosen) else {
         return Vec::new();
     };
-    let widest = recipes
+    let same = recipes
         .iter()
         .filter(|r| r.loss == loss && r.start == start)
-        .map(|r| r.bound)
-        .fold(bound, f32::max);
-    if !trained || bound < widest {
+        .map(|r| r.bound);
+    let (end, step): (f32, fn(f32) -> f32) = match edge {
+        Edge::Wide => (same.fold(bound, f32::max), three_times),
+        Edge::Narrow => (same.fold(bound, f32::min), a_third),
+    };
+    if !trained || bound != end {
         return Vec::new();
     }
-    std::iter::successors(Some(three_times(widest)), |&b| Some(three_times(b)))
+    std::iter::successors(Some(step(end)), |&b| Some(step(b)))
         .take(count)
         .map(|bound| Recipe { loss, start, bound })
         .collect()
 }
 
-/// Widens the ladder (`--widen-bounds room`): when the choice among `candidates` (one per
-/// recipe, in order) is a trained network at its recipe's widest bound, appends `room` wider
-/// rungs of that recipe ([`wider_rungs`]), trains them with `train` (given every recipe and the
-/// range to train) and returns the bounds added; the caller chooses again among all. One
-/// batch, whatever `--jobs` is, so the rungs tried depend on the held-out errors alone.
-fn widen(
+/// Extends the ladder past `edge` (`--widen-bounds room` or `--narrow-bounds room`): when the
+/// choice among `candidates` (one per recipe, in order) is a trained network at its recipe's
+/// `edge` bound, appends `room` further rungs of that recipe ([`edge_rungs`]), trains them
+/// with `train` (given every recipe and the range to train) and returns the bounds added; the
+/// caller chooses again among all. One batch, whatever `--jobs` is, so the rungs tried depend
+/// on the held-out errors alone.
+fn extend_ladder(
     recipes: &mut Vec<Recipe>,
     candidates: &mut Vec<Candidate>,
     room: usize,
+    edge: Edge,
     train: impl FnOnce(&[Recipe], std::ops::Range<usize>) -> anyhow::Result<Vec<Candidate>>,
 ) -> anyhow::Result<Vec<f64>> {
     let chosen = choose_among(candidates);
     let trained = candidates.get(chosen).is_some_and(|c| c.selected_step > 0);
-    let next = wider_rungs(recipes, chosen, trained, room);
+    let next = edge_rungs(recipes, chosen, trained, room, edge);
     if next.is_empty() {
         return Ok(Vec::new());
     }
     let from = recipes.len();
-    let widened = next.iter().map(|r| as_written(r.bound)).collect();
+    let added = next.iter().map(|r| as_written(r.bound)).collect();
     recipes.extend(next);
     let more = train(recipes, from..recipes.len())?;
     anyhow::ensure!(
         more.len() == recipes.len() - from,
-        "{} of {} wider candidates ran",
+        "{} of {} further candidates ran",
         more.len(),
         recipes.len() - from
     );
     candidates.extend(more);
-    Ok(widened)
+    Ok(added)
 }
 
 /// Copies `from` to `to` through a temporary file and a rename.
@@ -228,7 +260,8 @@ fn copy_atomic(from: &Path, to: &Path) -> anyhow::Result<()> {
 pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
     anyhow::ensure!(
         args.holdout > 0,
-        "several --residual-scale, --start-from or --loss values, or --widen-bounds, need \
+        "several --residual-scale, --start-from or --loss values, or --widen-bounds or \
+         --narrow-bounds, need \
          --holdout K: the recipe is chosen on held-out training episodes, never on the val split"
     );
     anyhow::ensure!(
@@ -247,24 +280,27 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
         backbone.display()
     );
     let mut candidates = train_range(args, shape, &recipes, 0..recipes.len())?;
-    let widened = widen(
-        &mut recipes,
-        &mut candidates,
-        args.widen_bounds,
-        |recipes, todo| {
+    let mut extend = |edge: Edge, room: usize, recipes: &mut Vec<Recipe>| {
+        extend_ladder(recipes, &mut candidates, room, edge, |recipes, todo| {
             if !args.quiet {
                 let list: Vec<String> = recipes[todo.clone()]
                     .iter()
                     .map(|r| format!("{} m/s", r.bound))
                     .collect();
+                let (edge, verb) = match edge {
+                    Edge::Wide => ("widest", "widening"),
+                    Edge::Narrow => ("narrowest", "narrowing"),
+                };
                 eprintln!(
-                    "the choice is a trained network at the ladder's edge: widening to {}",
+                    "the choice is a trained network at the ladder's {edge} bound: {verb} to {}",
                     list.join(", ")
                 );
             }
             train_range(args, shape, recipes, todo)
-        },
-    )?;
+        })
+    };
+    let widened = extend(Edge::Wide, args.widen_bounds, &mut recipes)?;
+    let narrowed = extend(Edge::Narrow, args.narrow_bounds, &mut recipes)?;
     let chosen_at = choose_among(&candidates);
     let chosen = &candidates[chosen_at];
     for file in ["residual.safetensors", "residual.json"] {
@@ -274,9 +310,11 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
         serde_json::from_str(&std::fs::read_to_string(chosen.run.join("train.json"))?)?;
     report["recipe_choice"] = serde_json::json!({
         "rule": "candidates in order (losses as given, start modes as given, bounds \
-                 increasing; bounds added by --widen-bounds after them); a later one replaces \
-                 the choice when its trained network is clearly better on the held-out episodes",
+                 increasing; bounds added by --widen-bounds after them, then those added by \
+                 --narrow-bounds); a later one replaces the choice when its trained network is \
+                 clearly better on the held-out episodes",
         "widened_bounds": widened,
+        "narrowed_bounds": narrowed,
         "chosen": { "loss": chosen.loss, "start_from": chosen.start_from, "bound": chosen.bound },
         "candidates": candidates,
     });
@@ -359,8 +397,9 @@ fn train_candidate(
     one.residual_scale = vec![bound];
     one.start_from = vec![start];
     one.loss = vec![loss];
-    // A candidate is one network: it neither chooses nor widens again.
+    // A candidate is one network: it neither chooses nor extends the ladder again.
     one.widen_bounds = 0;
+    one.narrow_bounds = 0;
     one.run = dir.clone();
     one.progress = progress.map(|multi| {
         let label = format!("{} {} {bound} m/s ", arg_name(loss), arg_name(start));
@@ -615,7 +654,7 @@ mod tests {
             )
             .unwrap();
         }
-        let train = |run: &str, jobs: &str, widen: &str| -> serde_json::Value {
+        let train = |run: &str, jobs: &str, widen: &str, narrow: &str| -> serde_json::Value {
             let run = dir.join(run);
             let argv = [
                 "train",
@@ -637,14 +676,16 @@ mod tests {
                 jobs,
                 "--widen-bounds",
                 widen,
+                "--narrow-bounds",
+                narrow,
                 "--quiet",
             ];
             crate::cmd_train::run(&parse(argv)).unwrap();
             let text = std::fs::read_to_string(run.join("train.json")).unwrap();
             serde_json::from_str::<serde_json::Value>(&text).unwrap()["recipe_choice"].clone()
         };
-        let one = train("one", "1", "0");
-        let two = train("two", "2", "0");
+        let one = train("one", "1", "0", "0");
+        let two = train("two", "2", "0", "0");
         let candidates = one["candidates"].as_array().unwrap();
         assert_eq!(candidates.len(), 4);
         assert_eq!(one["chosen"], two["chosen"]);
@@ -665,9 +706,10 @@ mod tests {
             };
             assert!(net(a) == net(b), "{}", a["run"]);
         }
-        // Widening keeps the ladder's candidates, each in its own directory of the run, and
-        // trains 3 m/s only when the choice is a trained network at 1 m/s.
-        let three = train("three", "2", "1");
+        // Extending the ladder keeps its candidates, each in its own directory of the run, and
+        // trains 3 m/s only when the choice is a trained network at 1 m/s, a third of 0.1 m/s
+        // only when it is one at 0.1 m/s.
+        let three = train("three", "2", "1", "1");
         let widened = three["candidates"].as_array().unwrap();
         for (a, b) in candidates.iter().zip(widened) {
             assert_eq!(a["heldout_episode_mde_cm"], b["heldout_episode_mde_cm"]);
@@ -683,10 +725,13 @@ mod tests {
                     && c["bound"] == one["chosen"]["bound"]
             })
             .unwrap();
-        let edge = chosen["bound"] == 1.0 && chosen["selected_step"].as_u64() > Some(0);
-        let expected: Vec<f64> = if edge { vec![3.0] } else { vec![] };
-        assert_eq!(three["widened_bounds"], serde_json::json!(expected));
-        assert_eq!(widened.len(), 4 + expected.len());
+        let trained = chosen["selected_step"].as_u64() > Some(0);
+        let at = |bound: f64| trained && chosen["bound"] == bound;
+        let wider: Vec<f64> = if at(1.0) { vec![3.0] } else { vec![] };
+        let narrower: Vec<f64> = if at(0.1) { vec![0.0333333] } else { vec![] };
+        assert_eq!(three["widened_bounds"], serde_json::json!(wider));
+        assert_eq!(three["narrowed_bounds"], serde_json::json!(narrower));
+        assert_eq!(widened.len(), 4 + wider.len() + narrower.len());
         std::fs::remove_dir_all(&dir).ok();
     }
 
@@ -793,26 +838,49 @@ mod tests {
         };
         // At the edge of its own start mode, trained: the next rungs of that start mode.
         assert_eq!(
-            bounds(wider_rungs(&ladder, 1, true, 2)),
+            bounds(edge_rungs(&ladder, 1, true, 2, Edge::Wide)),
             [(Guided, 3.0), (Guided, 9.0)]
         );
-        assert_eq!(bounds(wider_rungs(&ladder, 3, true, 1)), [(Recorded, 0.9)]);
+        assert_eq!(
+            bounds(edge_rungs(&ladder, 3, true, 1, Edge::Wide)),
+            [(Recorded, 0.9)]
+        );
         // Inside the ladder, untrained, nothing asked, or no such candidate: none.
-        assert!(wider_rungs(&ladder, 0, true, 2).is_empty());
-        assert!(wider_rungs(&ladder, 2, true, 2).is_empty());
-        assert!(wider_rungs(&ladder, 1, false, 2).is_empty());
-        assert!(wider_rungs(&ladder, 1, true, 0).is_empty());
-        assert!(wider_rungs(&ladder, 9, true, 2).is_empty());
+        assert!(edge_rungs(&ladder, 0, true, 2, Edge::Wide).is_empty());
+        assert!(edge_rungs(&ladder, 2, true, 2, Edge::Wide).is_empty());
+        assert!(edge_rungs(&ladder, 1, false, 2, Edge::Wide).is_empty());
+        assert!(edge_rungs(&ladder, 1, true, 0, Edge::Wide).is_empty());
+        assert!(edge_rungs(&ladder, 9, true, 2, Edge::Wide).is_empty());
         // The widened rungs of a start mode are its widest from then on.
         let mut longer = ladder.to_vec();
-        longer.extend(wider_rungs(&ladder, 1, true, 1));
-        assert_eq!(bounds(wider_rungs(&longer, 4, true, 1)), [(Guided, 9.0)]);
-        assert!(wider_rungs(&longer, 1, true, 1).is_empty());
+        longer.extend(edge_rungs(&ladder, 1, true, 1, Edge::Wide));
+        assert_eq!(
+            bounds(edge_rungs(&longer, 4, true, 1, Edge::Wide)),
+            [(Guided, 9.0)]
+        );
+        assert!(edge_rungs(&longer, 1, true, 1, Edge::Wide).is_empty());
+        // The other end: a third, a ninth, … of the narrowest bound of the chosen start mode.
+        let narrowed: Vec<f32> = [0.1, 0.3, 1.0].map(a_third).to_vec();
+        assert_eq!(narrowed, [0.0333333, 0.1, 0.333333]);
+        assert_eq!(as_written(a_third(0.1)), 0.0333333);
+        assert_eq!(
+            bounds(edge_rungs(&ladder, 0, true, 2, Edge::Narrow)),
+            [(Guided, 0.0333333), (Guided, 0.0111111)]
+        );
+        assert_eq!(
+            bounds(edge_rungs(&ladder, 2, true, 1, Edge::Narrow)),
+            [(Recorded, 0.0333333)]
+        );
+        assert!(edge_rungs(&ladder, 1, true, 2, Edge::Narrow).is_empty());
+        assert!(edge_rungs(&ladder, 3, true, 2, Edge::Narrow).is_empty());
+        assert!(edge_rungs(&ladder, 0, false, 2, Edge::Narrow).is_empty());
         // The flag parses; with one recipe it still goes through the choice.
-        let args = parse(["train", "--data", "d", "--run", "r", "--widen-bounds", "2"]);
-        assert_eq!(args.widen_bounds, 2);
-        let err = crate::cmd_train::run(&args).unwrap_err().to_string();
-        assert!(err.contains("--holdout"), "{err}");
+        for flag in ["--widen-bounds", "--narrow-bounds"] {
+            let args = parse(["train", "--data", "d", "--run", "r", flag, "2"]);
+            assert_eq!(args.widen_bounds + args.narrow_bounds, 2);
+            let err = crate::cmd_train::run(&args).unwrap_err().to_string();
+            assert!(err.contains("--holdout"), "{err}");
+        }
     }
 
     #[test]
@@ -848,10 +916,16 @@ mod tests {
             let mut recipes = recipes(&[Mse], &[Guided], ladder);
             let mut candidates: Vec<Candidate> = recipes.iter().map(candidate).collect();
             let mut batches = Vec::new();
-            let widened = widen(&mut recipes, &mut candidates, room, |all, todo| {
-                batches.push(todo.len());
-                Ok(all[todo].iter().map(candidate).collect())
-            })
+            let widened = extend_ladder(
+                &mut recipes,
+                &mut candidates,
+                room,
+                Edge::Wide,
+                |all, todo| {
+                    batches.push(todo.len());
+                    Ok(all[todo].iter().map(candidate).collect())
+                },
+            )
             .unwrap();
             let chosen = candidates[choose_among(&candidates)].bound;
             (widened, batches, chosen)
@@ -865,6 +939,68 @@ mod tests {
         // None asked, or the choice inside the ladder: the ladder as given.
         assert_eq!(run(&[0.1, 0.3, 1.0], 0), (vec![], vec![], 1.0));
         assert_eq!(run(&[0.3, 3.0, 9.0], 2), (vec![], vec![], 3.0));
+    }
+
+    #[test]
+    fn narrowed_rungs_are_judged_after_the_others_by_the_same_rule() {
+        use LossArg::*;
+        use StartArg::*;
+        // Held-out errors by bound: best at 0.1 among the ladder, as good on average but not
+        // clearly better at a third of it, clearly better at a ninth, bad below.
+        let errors = |bound: f32| -> Vec<f64> {
+            (0..6)
+                .map(|e| {
+                    let odd = f64::from(e % 2);
+                    match bound {
+                        b if b < 0.005 => 5.0,
+                        b if b < 0.02 => 2.0 + 0.1 * odd,
+                        b if b < 0.05 => 2.5 + 1.1 * odd,
+                        b if b < 0.2 => 3.0 + 0.1 * odd,
+                        b if b < 0.5 => 4.0,
+                        _ => 5.0,
+                    }
+                })
+                .collect()
+        };
+        let candidate = |r: &Recipe| Candidate {
+            loss: arg_name(r.loss),
+            start_from: arg_name(r.start),
+            bound: as_written(r.bound),
+            run: PathBuf::from(format!("bound_{}", r.bound)),
+            steps_done: 10,
+            status: "done".into(),
+            selected_step: 10,
+            backbone_heldout_mde_cm: 6.0,
+            heldout_mde_cm: errors(r.bound).iter().sum::<f64>() / 6.0,
+            heldout_episode_mde_cm: errors(r.bound),
+        };
+        let run = |ladder: &[f32], wide: usize, narrow: usize| {
+            let mut recipes = recipes(&[Mse], &[Guided], ladder);
+            let mut candidates: Vec<Candidate> = recipes.iter().map(candidate).collect();
+            let mut added = Vec::new();
+            for (edge, room) in [(Edge::Wide, wide), (Edge::Narrow, narrow)] {
+                let more = extend_ladder(&mut recipes, &mut candidates, room, edge, |all, todo| {
+                    Ok(all[todo].iter().map(candidate).collect())
+                })
+                .unwrap();
+                added.push(more);
+            }
+            (added, candidates[choose_among(&candidates)].bound)
+        };
+        // 0.1 is chosen at the narrow end: a third ties with it (kept), a ninth replaces it.
+        assert_eq!(
+            run(&[0.1, 0.3, 1.0], 2, 2),
+            (vec![vec![], vec![0.0333333, 0.0111111]], 0.0111111)
+        );
+        assert_eq!(
+            run(&[0.1, 0.3, 1.0], 0, 1),
+            (vec![vec![], vec![0.0333333]], 0.1)
+        );
+        // A choice inside the ladder: nothing added at either end.
+        assert_eq!(
+            run(&[0.004, 0.0111111, 0.1], 2, 2),
+            (vec![vec![], vec![]], 0.0111111)
+        );
     }
 
     #[test]
