@@ -342,7 +342,7 @@ fn summary_table(candidates: &[Candidate], chosen: usize, iterations: usize) -> 
         .map_or(0, |c| c.heldout_episode_mde_cm.len());
     let mut out = format!(
         "recipe choice: held-out rollout MDE on {episodes} training episodes (backbone {backbone:.3} cm)\n\
-         {:<10} {:<16} {:>7} {:>13} {:>9} {:>11}\n",
+         {:<10} {:<16} {:>13} {:>13} {:>9} {:>11}\n",
         "loss", "start", "bound", "steps", "selected", "held-out"
     );
     let mut cut_any = false;
@@ -357,7 +357,7 @@ fn summary_table(candidates: &[Candidate], chosen: usize, iterations: usize) -> 
         let bound = format!("{} m/s", c.bound);
         let mark = if i == chosen { "  <- chosen" } else { "" };
         out.push_str(&format!(
-            "{:<10} {:<16} {bound:>7} {steps:>13} {:>9} {:>8.3} cm{mark}\n",
+            "{:<10} {:<16} {bound:>13} {steps:>13} {:>9} {:>8.3} cm{mark}\n",
             c.loss, c.start_from, c.selected_step, c.heldout_mde_cm,
         ));
     }
