@@ -710,11 +710,11 @@ mod tests {
         // trains 3 m/s only when the choice is a trained network at 1 m/s, a third of 0.1 m/s
         // only when it is one at 0.1 m/s.
         let three = train("three", "2", "1", "1");
-        let widened = three["candidates"].as_array().unwrap();
-        for (a, b) in candidates.iter().zip(widened) {
+        let extended = three["candidates"].as_array().unwrap();
+        for (a, b) in candidates.iter().zip(extended) {
             assert_eq!(a["heldout_episode_mde_cm"], b["heldout_episode_mde_cm"]);
         }
-        for c in widened {
+        for c in extended {
             let run = std::path::PathBuf::from(c["run"].as_str().unwrap());
             assert_eq!(run.parent(), Some(dir.join("three").as_path()));
         }
@@ -731,7 +731,7 @@ mod tests {
         let narrower: Vec<f64> = if at(0.1) { vec![0.0333333] } else { vec![] };
         assert_eq!(three["widened_bounds"], serde_json::json!(wider));
         assert_eq!(three["narrowed_bounds"], serde_json::json!(narrower));
-        assert_eq!(widened.len(), 4 + wider.len() + narrower.len());
+        assert_eq!(extended.len(), 4 + wider.len() + narrower.len());
         std::fs::remove_dir_all(&dir).ok();
     }
 
