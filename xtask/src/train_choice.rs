@@ -883,6 +883,22 @@ mod tests {
         }
     }
 
+    /// A trained candidate for `recipe` with these held-out errors, for the ladder tests.
+    fn stand_in(recipe: &Recipe, errors: Vec<f64>) -> Candidate {
+        Candidate {
+            loss: arg_name(recipe.loss),
+            start_from: arg_name(recipe.start),
+            bound: as_written(recipe.bound),
+            run: PathBuf::from(format!("bound_{}", recipe.bound)),
+            steps_done: 10,
+            status: "done".into(),
+            selected_step: 10,
+            backbone_heldout_mde_cm: 6.0,
+            heldout_mde_cm: errors.iter().sum::<f64>() / errors.len() as f64,
+            heldout_episode_mde_cm: errors,
+        }
+    }
+
     #[test]
     fn widened_rungs_are_judged_in_order_by_the_same_rule() {
         use LossArg::*;
@@ -900,18 +916,7 @@ mod tests {
             };
             (0..6).map(|e| level + 0.01 * f64::from(e)).collect()
         };
-        let candidate = |r: &Recipe| Candidate {
-            loss: arg_name(r.loss),
-            start_from: arg_name(r.start),
-            bound: as_written(r.bound),
-            run: PathBuf::from(format!("bound_{}", r.bound)),
-            steps_done: 10,
-            status: "done".into(),
-            selected_step: 10,
-            backbone_heldout_mde_cm: 6.0,
-            heldout_mde_cm: errors(r.bound).iter().sum::<f64>() / 6.0,
-            heldout_episode_mde_cm: errors(r.bound),
-        };
+        let candidate = |r: &Recipe| stand_in(r, errors(r.bound));
         let run = |ladder: &[f32], room: usize| -> (Vec<f64>, Vec<usize>, f64) {
             let mut recipes = recipes(&[Mse], &[Guided], ladder);
             let mut candidates: Vec<Candidate> = recipes.iter().map(candidate).collect();
@@ -962,18 +967,7 @@ mod tests {
                 })
                 .collect()
         };
-        let candidate = |r: &Recipe| Candidate {
-            loss: arg_name(r.loss),
-            start_from: arg_name(r.start),
-            bound: as_written(r.bound),
-            run: PathBuf::from(format!("bound_{}", r.bound)),
-            steps_done: 10,
-            status: "done".into(),
-            selected_step: 10,
-            backbone_heldout_mde_cm: 6.0,
-            heldout_mde_cm: errors(r.bound).iter().sum::<f64>() / 6.0,
-            heldout_episode_mde_cm: errors(r.bound),
-        };
+        let candidate = |r: &Recipe| stand_in(r, errors(r.bound));
         let run = |ladder: &[f32], wide: usize, narrow: usize| {
             let mut recipes = recipes(&[Mse], &[Guided], ladder);
             let mut candidates: Vec<Candidate> = recipes.iter().map(candidate).collect();
