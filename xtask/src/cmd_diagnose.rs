@@ -35,12 +35,13 @@ pub struct DiagnoseArgs {
     /// CMA-ES candidates per generation of each refit.
     #[arg(long, default_value_t = 8)]
     pub population: usize,
-    /// Generations of each refit.
-    #[arg(long, default_value_t = 10)]
-    pub generations: usize,
-    /// Training episodes sampled per generation.
-    #[arg(long, default_value_t = 8)]
-    pub samples: usize,
+    /// Generations of each refit. Default 10, unless `--budget-min` takes the bench's refit
+    /// size (8 generations of 6 episodes, rescored on 16).
+    #[arg(long)]
+    pub generations: Option<usize>,
+    /// Training episodes sampled per generation. Default 8 (see `--generations`).
+    #[arg(long)]
+    pub samples: Option<usize>,
     /// Seed of the refits and the bootstrap.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -54,9 +55,9 @@ pub struct DiagnoseArgs {
     pub rescore: usize,
     /// Most training episodes the rescoring scores: a subset of this many, drawn with the
     /// seed, when there are more (0: all; with 100 training episodes the default 64 saves
-    /// about 13 % of each refit's rollouts, `docs/gap.md`).
-    #[arg(long, default_value_t = 64)]
-    pub rescore_scenes: usize,
+    /// about 13 % of each refit's rollouts, `docs/gap.md`). Default 64 (see `--generations`).
+    #[arg(long)]
+    pub rescore_scenes: Option<usize>,
     /// Race the library candidates' refits (0: off): every candidate gets half the
     /// generations, and only the best N by training loss get the rest and the rescoring; the
     /// control and the probe always get the whole budget. Faster, at some risk to the verdict
@@ -64,11 +65,12 @@ pub struct DiagnoseArgs {
     #[arg(long)]
     pub race: Option<usize>,
     /// Time budget, minutes on the reference 2-core host of `gap::SECONDS_PER_WORK` (0:
-    /// none). When neither `--race` nor `--substep` is given and the diagnosis's estimated
-    /// time (`gap::effort`: simulator work counted before the run, no clock, so the choice is
-    /// the same on every run) is above it, the refits race (`--race 3`) and, if that is not
-    /// enough, also take the spectral substep; the command says so and `report.json` records
-    /// it (`budget`). `docs/gap.md`, "Time budget".
+    /// none). When the diagnosis's estimated time (`gap::effort`: simulator work counted
+    /// before the run, no clock, so the choice is the same on every run) is above it, the
+    /// refits shrink to the bench's size (unless `--generations`, `--samples` or
+    /// `--rescore-scenes` is given), then race (`--race 3`), then also take the spectral
+    /// substep (unless `--race` or `--substep` is given); the command says so and
+    /// `report.json` records it (`budget`). `docs/gap.md`, "Time budget".
     #[arg(long, default_value_t = 10.0)]
     pub budget_min: f64,
     /// Print the estimated time of the diagnosis as given and with the speed options the
@@ -154,12 +156,12 @@ fn config_from(args: &DiagnoseArgs, run_effects: &[BaseEffect]) -> anyhow::Resul
     };
     Ok(DiagnoseConfig {
         population: args.population,
-        generations: args.generations,
-        samples: args.samples,
+        generations: args.generations.unwrap_or(DEFAULT_REFITS.generations),
+        samples: args.samples.unwrap_or(DEFAULT_REFITS.samples),
         seed: args.seed,
         resamples: args.resamples,
         rescore: args.rescore,
-        rescore_scenes: args.rescore_scenes,
+        rescore_scenes: args.rescore_scenes.unwrap_or(DEFAULT_REFITS.rescore_scenes),
         race: args.race.unwrap_or(0),
         candidates,
         base: match &args.with {
@@ -326,30 +328,83 @@ fn check_write_run(dir: &Path, run: &Path) -> anyhow::Result<()> {
 /// The race a budget chooses (the bench's measured setting, `docs/gap.md`).
 const BUDGET_RACE: usize = 3;
 
+/// The size of every refit of a diagnosis: generations, training episodes sampled per
+/// generation, and most training episodes of the final rescoring.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+struct Refits {
+    generations: usize,
+    samples: usize,
+    rescore_scenes: usize,
+}
+
+/// A user's diagnosis when nothing is given.
+const DEFAULT_REFITS: Refits = Refits {
+    generations: 10,
+    samples: 8,
+    rescore_scenes: 64,
+};
+
+/// The refit size every `diagnose-bench` verdict was measured at (its defaults: 8 generations
+/// of 6 episodes, rescored on all of its 16 training episodes), so a budget that takes it keeps
+/// the diagnosis at the size its measured accuracy speaks for.
+const BENCH_REFITS: Refits = Refits {
+    generations: 8,
+    samples: 6,
+    rescore_scenes: 16,
+};
+
+impl Refits {
+    fn of(config: &DiagnoseConfig) -> Refits {
+        Refits {
+            generations: config.generations,
+            samples: config.samples,
+            rescore_scenes: config.rescore_scenes,
+        }
+    }
+
+    fn apply(self, config: &DiagnoseConfig) -> DiagnoseConfig {
+        DiagnoseConfig {
+            generations: self.generations,
+            samples: self.samples,
+            rescore_scenes: self.rescore_scenes,
+            ..config.clone()
+        }
+    }
+}
+
 /// One set of speed options a diagnosis can run with, and its estimated effort.
 struct Level {
+    refits: Refits,
     race: usize,
     substep: SubstepArg,
     effort: gap::Effort,
 }
 
 impl Level {
-    fn options(&self, run_substep: SubstepArg) -> String {
+    /// The flags that turn `given` (the first level) into this one.
+    fn options(&self, given: &Level) -> String {
         let mut out = Vec::new();
-        if self.race > 0 {
+        if self.refits != given.refits {
+            out.push(format!(
+                "--generations {} --samples {} --rescore-scenes {}",
+                self.refits.generations, self.refits.samples, self.refits.rescore_scenes
+            ));
+        }
+        if self.race != given.race {
             out.push(format!("--race {}", self.race));
         }
-        if self.substep != run_substep {
+        if self.substep != given.substep {
             out.push(format!("--substep {}", self.substep.name()));
         }
         out.join(" ")
     }
 }
 
-/// The options as given first, then (when neither `--race` nor `--substep` was given) the
-/// race, then the race with the spectral substep: in the order of their cost in verdicts on the
-/// bench (the race changed 2 of 106, the spectral substep more), usually each faster than the
-/// one before.
+/// The options as given first, then what the user left open, cheapest in verdicts first: the
+/// bench's refit size (when none of `--generations`, `--samples`, `--rescore-scenes` was
+/// given; the size the bench's verdicts were measured at), then the race, then the race with
+/// the spectral substep (when neither `--race` nor `--substep` was given; the race changed 2
+/// of 106 bench verdicts, the spectral substep more); usually each faster than the one before.
 fn effort_levels(
     args: &DiagnoseArgs,
     run_substep: SubstepArg,
@@ -358,21 +413,31 @@ fn effort_levels(
     params: &springs::SpringParams,
     config: &DiagnoseConfig,
 ) -> anyhow::Result<Vec<Level>> {
-    let mut options = vec![(config.race, args.substep.unwrap_or(run_substep))];
+    let given = Refits::of(config);
+    let mut options = vec![(given, config.race, args.substep.unwrap_or(run_substep))];
+    let refits_open =
+        args.generations.is_none() && args.samples.is_none() && args.rescore_scenes.is_none();
+    let smaller = if refits_open && BENCH_REFITS != given {
+        options.push((BENCH_REFITS, config.race, options[0].2));
+        BENCH_REFITS
+    } else {
+        given
+    };
     if args.race.is_none() && args.substep.is_none() {
-        options.push((BUDGET_RACE, run_substep));
+        options.push((smaller, BUDGET_RACE, run_substep));
         if run_substep == SubstepArg::Auto {
-            options.push((BUDGET_RACE, SubstepArg::Spectral));
+            options.push((smaller, BUDGET_RACE, SubstepArg::Spectral));
         }
     }
     options
         .into_iter()
-        .map(|(race, substep)| {
+        .map(|(refits, race, substep)| {
             let cfg = DiagnoseConfig {
                 race,
-                ..config.clone()
+                ..refits.apply(config)
             };
             Ok(Level {
+                refits,
                 race,
                 substep,
                 effort: gap::effort(train, val, params, &cfg, substep.substep())?,
@@ -401,7 +466,7 @@ fn choose_level(budget_min: f64, levels: &[Level]) -> Option<(usize, gap::Budget
             budget_s,
             full_estimated_s: levels[0].effort.estimated_s(),
             estimated_s: levels[k].effort.estimated_s(),
-            options: levels[k].options(levels[0].substep),
+            options: levels[k].options(&levels[0]),
         },
     ))
 }
@@ -467,7 +532,7 @@ pub fn estimate(args: &DiagnoseArgs) -> anyhow::Result<()> {
         val.len()
     );
     for (k, l) in levels.iter().enumerate() {
-        let options = l.options(levels[0].substep);
+        let options = l.options(&levels[0]);
         println!(
             "  {:>6.0} s  {}: {} refit, {} held-out and {} signature rollouts, {:.0} substeps per step, {:.0} springs, {:.0} particles{}",
             l.effort.estimated_s(),
@@ -533,11 +598,14 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
             if choice.estimated_s > choice.budget_s {
                 println!(
                     "  note: no option fits the budget; fewer --generations or --samples, or \
-                     fewer --candidates, would shorten it"
+                     fewer --candidates, would shorten it further"
                 );
             }
         }
-        config.race = chosen.race;
+        config = DiagnoseConfig {
+            race: chosen.race,
+            ..chosen.refits.apply(&config)
+        };
         if chosen.substep != substep {
             substep = chosen.substep;
             train = scenes(&data, Split::Train, protocol, substep)?;
@@ -658,6 +726,7 @@ mod tests {
     /// A level whose estimate is `seconds`.
     fn level(race: usize, substep: SubstepArg, seconds: f64) -> Level {
         Level {
+            refits: DEFAULT_REFITS,
             race,
             substep,
             effort: gap::Effort {
@@ -710,6 +779,15 @@ mod tests {
         assert!(choose_level(0.0, &levels).is_none());
         assert!(choose_level(f64::NAN, &levels).is_none());
         assert!(choose_level(1.0, &levels[..1]).is_none());
+        // A smaller refit size is named by all three of its flags.
+        let smaller = Level {
+            refits: BENCH_REFITS,
+            ..level(3, SubstepArg::Spectral, 40.0)
+        };
+        assert_eq!(
+            smaller.options(&levels[0]),
+            "--generations 8 --samples 6 --rescore-scenes 16 --race 3 --substep spectral"
+        );
     }
 
     #[derive(clap::Parser)]
@@ -724,6 +802,42 @@ mod tests {
         let data = crate::cmd_fit::FIXTURE_ROPE;
         let fit = crate::cmd_fit::FitArgs::quick_rope_fixture(dir.join("run"));
         crate::cmd_fit::run(&fit).unwrap();
+        // The ladder a budget climbs: the bench's refit size only when the user left all three
+        // of its flags open, the race and the spectral substep only when both of theirs are.
+        let ladder = |extra: &[&str]| -> Vec<(String, f64)> {
+            let run = dir.join("run");
+            let run = run.to_str().unwrap();
+            let mut argv = vec!["diagnose", "--estimate", "--data", data, "--run", run];
+            argv.extend(extra);
+            let args = <Diag as clap::Parser>::try_parse_from(argv).unwrap().args;
+            let levels = setup(&args).unwrap().levels;
+            levels
+                .iter()
+                .map(|l| (l.options(&levels[0]), l.effort.estimated_s()))
+                .collect()
+        };
+        let open = ladder(&[]);
+        let names: Vec<&str> = open.iter().map(|(o, _)| o.as_str()).collect();
+        assert_eq!(
+            names,
+            [
+                "",
+                "--generations 8 --samples 6 --rescore-scenes 16",
+                "--generations 8 --samples 6 --rescore-scenes 16 --race 3",
+                "--generations 8 --samples 6 --rescore-scenes 16 --race 3 --substep spectral",
+            ]
+        );
+        assert!(open[1].1 < open[0].1, "{open:?}");
+        let sized = ladder(&["--samples", "8"]);
+        let names: Vec<&str> = sized.iter().map(|(o, _)| o.as_str()).collect();
+        assert_eq!(names, ["", "--race 3", "--race 3 --substep spectral"]);
+        let raced = ladder(&["--race", "2"]);
+        let names: Vec<&str> = raced.iter().map(|(o, _)| o.as_str()).collect();
+        assert_eq!(
+            names,
+            ["", "--generations 8 --samples 6 --rescore-scenes 16"]
+        );
+        assert_eq!(ladder(&["--race", "2", "--generations", "10"]).len(), 1);
         let diagnose = |out: &str, extra: &[&str]| -> Diagnosis {
             let out = dir.join(out);
             let mut argv: Vec<String> = [
