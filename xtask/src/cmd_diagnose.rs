@@ -416,26 +416,26 @@ fn effort_levels(
     params: &springs::SpringParams,
     config: &DiagnoseConfig,
 ) -> anyhow::Result<Vec<Level>> {
-    let mut level = (
+    let (mut refits, mut race, mut substep) = (
         Refits::of(config),
         config.race,
         args.substep.unwrap_or(run_substep),
     );
-    let mut options = vec![level];
+    let mut options = vec![(refits, race, substep)];
     let speed_open = args.race.is_none() && args.substep.is_none();
     let refits_open =
         args.generations.is_none() && args.samples.is_none() && args.rescore_scenes.is_none();
     if speed_open {
-        level.1 = BUDGET_RACE;
-        options.push(level);
+        race = BUDGET_RACE;
+        options.push((refits, race, substep));
     }
-    if refits_open && level.0 != BENCH_REFITS {
-        level.0 = BENCH_REFITS;
-        options.push(level);
+    if refits_open && refits != BENCH_REFITS {
+        refits = BENCH_REFITS;
+        options.push((refits, race, substep));
     }
     if speed_open && run_substep == SubstepArg::Auto {
-        level.2 = SubstepArg::Spectral;
-        options.push(level);
+        substep = SubstepArg::Spectral;
+        options.push((refits, race, substep));
     }
     options
         .into_iter()
