@@ -15,6 +15,7 @@ use crate::candidates::{Candidate, CandidateFamily, MaterialFrame};
 use crate::focus::{FOCUS_SCENES, ProbeStart, residual_focus};
 use crate::judge::{counts, judge};
 use crate::locate::{Where, locate};
+use crate::race::{race, race_probe_starts};
 use crate::stats::{Comparison, VerdictRule, paired_shrinkage};
 
 /// Settings of a diagnosis.
@@ -67,8 +68,10 @@ pub struct DiagnoseConfig {
     /// candidate's refit for half the generations, ranks them by training loss on
     /// [`RACE_SCENES`] training scenes, and spends the second half (and the final rescoring)
     /// only on the best `k`; the others keep their halfway state and are marked
-    /// [`RankedEffect::raced_out`]. The control and the probe always get the whole budget.
-    /// `0` (the default, and every report written before it existed): no race.
+    /// [`RankedEffect::raced_out`]. The control always gets the whole budget; the probe's two
+    /// starts race each other the same way, and one is finished ([`crate::ProbeStart`];
+    /// before 2026-12-01 both were). `0` (the default, and every report written before it
+    /// existed): no race.
     #[serde(default, skip_serializing_if = "is_zero")]
     pub race: usize,
 }
@@ -148,7 +151,9 @@ pub struct RankedEffect {
     /// [`Candidate::neutral`], the shared parameters as refitted). A candidate can beat the
     /// control through its refit of stiffness, damping and friction alone, with a near-neutral
     /// effect; then switching the effect off costs nothing and this is not significant.
-    /// `None` in reports written before the check existed.
+    /// `None` for a library refit whose interval against the control does not lie above 0
+    /// (it cannot count under any rule, so its effect-off twin is not rolled out; since
+    /// 2026-12-01), and in reports written before the check existed.
     #[serde(default)]
     pub effect_itself: Option<Comparison>,
     /// Cosine between the residual (data − backbone) and the effect's signature on training
@@ -279,18 +284,31 @@ fn fitted_names(family: &CandidateFamily, real: &[f64]) -> Vec<(String, f64)> {
         .collect()
 }
 
-struct Model {
-    family: CandidateFamily,
-    real: Vec<f64>,
-    train_loss: f64,
-    wall_s: f64,
-    raced_out: bool,
+/// One refit of the diagnosis.
+pub(crate) struct Model {
+    pub(crate) family: CandidateFamily,
+    pub(crate) real: Vec<f64>,
+    pub(crate) train_loss: f64,
+    pub(crate) wall_s: f64,
+    pub(crate) raced_out: bool,
 }
 
 fn predict(family: &CandidateFamily, real: &[f64], scene: &Scene) -> Option<Vec<Vec<Vec3>>> {
     let (params, options) = family.build(real);
     let pred = scene.rollout(&params, &scene.sim_config(), options).ok()?;
     pred.iter().flatten().all(|p| p.is_finite()).then_some(pred)
+}
+
+/// One model's predictions on a list of scenes, index-aligned (`None`: the rollout failed or
+/// diverged). Kept where a later step scores the same model again, so that it is not rolled
+/// out twice.
+type Predictions = Vec<Option<Vec<Vec<Vec3>>>>;
+
+fn predictions(family: &CandidateFamily, real: &[f64], scenes: &[Scene]) -> Predictions {
+    scenes
+        .par_iter()
+        .map(|s| predict(family, real, s))
+        .collect()
 }
 
 fn heldout(
@@ -300,9 +318,20 @@ fn heldout(
     fallback: Option<&Heldout>,
     emd: bool,
 ) -> Result<Heldout, GapError> {
+    score(val, &predictions(family, real, val), fallback, emd)
+}
+
+/// [`Heldout`] of the predictions `preds` of `val` (see [`heldout`]).
+fn score(
+    val: &[Scene],
+    preds: &[Option<Vec<Vec<Vec3>>>],
+    fallback: Option<&Heldout>,
+    emd: bool,
+) -> Result<Heldout, GapError> {
     let per: Vec<Option<Vec<scene::StepErrors>>> = val
         .par_iter()
-        .map(|s| predict(family, real, s).and_then(|p| scene::score_steps(s, &p, emd).ok()))
+        .zip(preds)
+        .map(|(s, p)| p.as_ref().and_then(|p| scene::score_steps(s, p, emd).ok()))
         .collect();
     let steps = val.iter().map(|s| s.truth.len()).max().unwrap_or(0);
     let (mut mde, mut ch, mut em) = (Vec::new(), 0.0, 0.0);
@@ -358,36 +387,74 @@ fn effect_switched_off(real: &[f64], cand: Candidate) -> Vec<f64> {
 /// Cosine between the residual `truth − base` and the effect's signature
 /// `pred(start) − pred(neutral)` (the start on this data, [`Candidate::start_in`]) over the
 /// tracked, visible positions of `scenes`.
+/// The backbone `base` with its base effects at their given values and `extra` (the
+/// candidate `cand` at values `v`), as the signatures roll it out.
+fn signature_options(
+    base_effects: &[BaseEffect],
+    extra: Option<(Candidate, &[f64])>,
+    frame: &MaterialFrame,
+) -> springs::BackboneOptions {
+    let mut effects: Vec<Box<dyn springs::Effect>> = base_effects
+        .iter()
+        .map(|b| b.effect.effect(&b.values, frame))
+        .collect();
+    if let Some((cand, v)) = extra {
+        effects.push(cand.effect(v, frame));
+    }
+    springs::BackboneOptions {
+        masses: None,
+        effects,
+    }
+}
+
+/// The rollouts of `scenes` whose residuals the signatures are measured against: the backbone
+/// with the base effects at their given values.
+fn signature_plain(
+    base: &SpringParams,
+    base_effects: &[BaseEffect],
+    frame: &MaterialFrame,
+    scenes: &[Scene],
+) -> Predictions {
+    scenes
+        .par_iter()
+        .map(|s| {
+            s.rollout(
+                base,
+                &s.sim_config(),
+                signature_options(base_effects, None, frame),
+            )
+            .ok()
+        })
+        .collect()
+}
+
 fn signature_cosine(
     base: &SpringParams,
     base_effects: &[BaseEffect],
     cand: Candidate,
     frame: &MaterialFrame,
     scenes: &[Scene],
+    plain: &[Option<Vec<Vec<Vec3>>>],
 ) -> f64 {
     // The base effects stay at their given values in all three rollouts.
-    let with = |extra: Option<&[f64]>| {
-        let mut effects: Vec<Box<dyn springs::Effect>> = base_effects
-            .iter()
-            .map(|b| b.effect.effect(&b.values, frame))
-            .collect();
-        if let Some(v) = extra {
-            effects.push(cand.effect(v, frame));
-        }
-        springs::BackboneOptions {
-            masses: None,
-            effects,
-        }
-    };
     let parts: Vec<(f64, f64, f64)> = scenes
         .par_iter()
-        .map(|s| {
+        .zip(plain)
+        .map(|(s, plain)| {
             let cfg = s.sim_config();
-            let run = |v: &[f64]| s.rollout(base, &cfg, with(Some(v))).ok();
-            let plain = s.rollout(base, &cfg, with(None)).ok();
-            let (Some(plain), Some(on), Some(off)) =
-                (plain, run(&cand.start_in(frame)), run(&cand.neutral()))
-            else {
+            let run = |v: &[f64]| {
+                s.rollout(
+                    base,
+                    &cfg,
+                    signature_options(base_effects, Some((cand, v)), frame),
+                )
+                .ok()
+            };
+            let (Some(plain), Some(on), Some(off)) = (
+                plain.as_ref(),
+                run(&cand.start_in(frame)),
+                run(&cand.neutral()),
+            ) else {
                 return (0.0, 0.0, 0.0);
             };
             let (mut rs, mut rr, mut ss) = (0.0, 0.0, 0.0);
@@ -416,81 +483,6 @@ fn signature_cosine(
     } else {
         0.0
     }
-}
-
-/// The race of [`DiagnoseConfig::race`]: the refits of the library candidates among `all`
-/// (the probe is not raced), index-aligned with `all`; `None` where the candidate is not raced
-/// (the probe, or every candidate when there is no race or nothing to cut).
-fn race(
-    train: &[Scene],
-    all: &[Candidate],
-    config: &DiagnoseConfig,
-    fit_cfg: &FitConfig,
-    family_of: &dyn Fn(Option<Candidate>) -> Result<CandidateFamily, GapError>,
-    progress: &mut dyn FnMut(&str),
-) -> Result<Vec<Option<Model>>, GapError> {
-    let racers: Vec<usize> = (0..all.len())
-        .filter(|&k| all[k] != Candidate::ExternalField)
-        .collect();
-    let mut out: Vec<Option<Model>> = all.iter().map(|_| None).collect();
-    if config.race == 0 || config.race >= racers.len() {
-        return Ok(out);
-    }
-    let half = config.generations.div_ceil(2);
-    let mut runs = Vec::new();
-    for &k in &racers {
-        let t = Instant::now();
-        let family = family_of(Some(all[k]))?;
-        let mut run = fit::PausedFit::start(train, &family, fit_cfg)?;
-        run.advance(train, &family, half)?;
-        let look = run.clone().finish(train, &family, 1, RACE_SCENES)?;
-        runs.push((k, family, run, look, t.elapsed().as_secs_f64()));
-    }
-    let mut order: Vec<usize> = (0..runs.len()).collect();
-    order.sort_by(|&a, &b| {
-        runs[a]
-            .3
-            .best_loss
-            .total_cmp(&runs[b].3.best_loss)
-            .then(a.cmp(&b))
-    });
-    let kept = &order[..config.race];
-    progress(&format!(
-        "race: {} candidates after {half} of {} generations, by training loss on {} scenes: {}; kept {}",
-        runs.len(),
-        config.generations,
-        RACE_SCENES.min(train.len()),
-        order
-            .iter()
-            .map(|&i| format!("{} {:.3e}", all[runs[i].0].name(), runs[i].3.best_loss))
-            .collect::<Vec<_>>()
-            .join(", "),
-        config.race
-    ));
-    for (i, (k, family, mut run, look, wall)) in runs.into_iter().enumerate() {
-        let model = if kept.contains(&i) {
-            let t = Instant::now();
-            run.advance(train, &family, config.generations)?;
-            let done = run.finish(train, &family, config.rescore, config.rescore_scenes)?;
-            Model {
-                family,
-                real: done.best,
-                train_loss: done.best_loss,
-                wall_s: wall + t.elapsed().as_secs_f64(),
-                raced_out: false,
-            }
-        } else {
-            Model {
-                family,
-                real: look.best,
-                train_loss: look.best_loss,
-                wall_s: wall,
-                raced_out: true,
-            }
-        };
-        out[k] = Some(model);
-    }
-    Ok(out)
 }
 
 /// The training data's mean tracked position and the reference shape's frame.
@@ -622,23 +614,21 @@ pub fn diagnose(
         })
     };
     let refit = |cand: Option<Candidate>| refit_in(cand, &frame);
-    let given_preds: Vec<Option<Vec<Vec<Vec3>>>> = val
-        .par_iter()
-        .map(|s| predict(&given, &given_real, s))
-        .collect();
+    let given_preds = predictions(&given, &given_real, val);
+    let backbone_as_given = score(val, &given_preds, None, false)?;
     let preds: Vec<Vec<Vec<Vec3>>> = given_preds
         .into_iter()
         .enumerate()
         .map(|(k, p)| p.ok_or(GapError::Rollout { index: k }))
         .collect::<Result<_, _>>()?;
     let place = locate(val, &preds, &frame.coordinate);
-    let backbone_as_given = heldout(&given, &given_real, val, None, false)?;
     progress(&format!(
         "backbone as given: held-out MDE {:.3} cm",
         backbone_as_given.mde_cm
     ));
     let control = refit(None)?;
-    let control_h = heldout(&control.family, &control.real, val, None, false)?;
+    let control_preds = predictions(&control.family, &control.real, val);
+    let control_h = score(val, &control_preds, None, false)?;
     let control_fit = ControlFit {
         fitted: fitted_names(&control.family, &control.real),
         base: control.family.base_effects_at(&control.real),
@@ -669,13 +659,41 @@ pub fn diagnose(
         all.push(Candidate::ExternalField);
     }
     let mut raced = race(train, &all, config, &fit_cfg, &family_of, progress)?;
-    let mut entries = Vec::new();
+    let mut entries: Vec<(RankedEffect, Heldout)> = Vec::new();
     let mut models = Vec::new();
+    let mut kept: Vec<Option<Predictions>> = Vec::new();
+    let mut best: Option<usize> = None;
+    // The backbone's rollouts of the signature scenes, the same for every candidate (the
+    // base effects do not depend on the probe's start, the only part of the frame that
+    // differs between candidates).
+    let sig_plain = signature_plain(base, &config.base, &frame, sig_scenes);
     let mut probe_start = None;
     for (k, cand) in all.iter().enumerate() {
         let mut start_frame = &frame;
         let model = match (raced[k].take(), focus) {
             (Some(m), _) => m,
+            (None, Some(focus)) if *cand == Candidate::ExternalField && config.race > 0 => {
+                let families = [family_of(Some(*cand))?, family_in(Some(*cand), &broad)?];
+                let (kept, [focus_loss, broad_loss], from_focus) =
+                    race_probe_starts(train, families, config, &fit_cfg)?;
+                progress(&format!(
+                    "probe's starts raced: training loss after {} of {} generations {focus_loss:.3e} from the focus, {broad_loss:.3e} broad; finished the {} one",
+                    config.generations.div_ceil(2),
+                    config.generations,
+                    if from_focus { "focus" } else { "broad" }
+                ));
+                probe_start = Some(ProbeStart {
+                    focus,
+                    focus_train_loss_m2: focus_loss,
+                    broad_train_loss_m2: broad_loss,
+                    from_focus,
+                    raced: true,
+                });
+                if !from_focus {
+                    start_frame = &broad;
+                }
+                kept
+            }
             (None, Some(focus)) if *cand == Candidate::ExternalField => {
                 let at_focus = refit(Some(*cand))?;
                 let from_broad = refit_in(Some(*cand), &broad)?;
@@ -685,6 +703,7 @@ pub fn diagnose(
                     focus_train_loss_m2: at_focus.train_loss,
                     broad_train_loss_m2: from_broad.train_loss,
                     from_focus,
+                    raced: false,
                 });
                 let wall_s = at_focus.wall_s + from_broad.wall_s;
                 let kept = if from_focus {
@@ -697,26 +716,37 @@ pub fn diagnose(
             }
             (None, _) => refit(Some(*cand))?,
         };
-        let h = heldout(&model.family, &model.real, val, Some(&control_h), false)?;
+        let h_preds = predictions(&model.family, &model.real, val);
+        let h = score(val, &h_preds, Some(&control_h), false)?;
         let cmp = paired_shrinkage(
             &control_h.per_episode_mde_cm,
             &h.per_episode_mde_cm,
             config.resamples,
             config.seed ^ (k as u64 + 1),
         )?;
-        let off = heldout(
-            &model.family,
-            &effect_switched_off(&model.real, *cand),
-            val,
-            Some(&control_h),
-            false,
-        )?;
-        let itself = paired_shrinkage(
-            &off.per_episode_mde_cm,
-            &h.per_episode_mde_cm,
-            config.resamples,
-            config.seed ^ ((k as u64 + 1) << 32),
-        )?;
+        // Whether the effect itself carries the gain matters to a library refit only when it
+        // beats the control (a rule counts a refit when both are significant), so only those
+        // pay for the effect-off rollouts: every refit whose interval lies above 0, the least
+        // any rule asks ([`Diagnosis::rejudge`] may apply another `min_shrinkage`). The probe
+        // always does: the rule compares it with the chosen candidate whenever its effect
+        // carries its gain, whatever its comparison with the control.
+        let itself = if cmp.ci95[0] > 0.0 || *cand == Candidate::ExternalField {
+            let off = heldout(
+                &model.family,
+                &effect_switched_off(&model.real, *cand),
+                val,
+                Some(&control_h),
+                false,
+            )?;
+            Some(paired_shrinkage(
+                &off.per_episode_mde_cm,
+                &h.per_episode_mde_cm,
+                config.resamples,
+                config.seed ^ ((k as u64 + 1) << 32),
+            )?)
+        } else {
+            None
+        };
         let mut entry = RankedEffect {
             effect: cand.name().to_string(),
             heldout_mde_before_cm: control_h.mde_cm,
@@ -724,8 +754,15 @@ pub fn diagnose(
             shrinkage: cmp.shrinkage,
             ci95: cmp.ci95,
             significant: false, // set below, by the verdict rule's own test
-            effect_itself: Some(itself),
-            signature_cosine: signature_cosine(base, &config.base, *cand, start_frame, sig_scenes),
+            effect_itself: itself,
+            signature_cosine: signature_cosine(
+                base,
+                &config.base,
+                *cand,
+                start_frame,
+                sig_scenes,
+                &sig_plain,
+            ),
             fitted: fitted_names(&model.family, &model.real),
             train_loss_m2: model.train_loss,
             refit_wall_s: model.wall_s,
@@ -734,20 +771,36 @@ pub fn diagnose(
         };
         entry.significant = counts(&entry, &config.rule);
         progress(&format!(
-            "{:<24} held-out MDE {:.3} -> {:.3} cm, shrinkage {:+.3} [{:+.3}, {:+.3}], vs effect off {:+.3} [{:+.3}, {:+.3}], signature cos {:+.2} ({:.1} s{})",
+            "{:<24} held-out MDE {:.3} -> {:.3} cm, shrinkage {:+.3} [{:+.3}, {:+.3}], {}, signature cos {:+.2} ({:.1} s{})",
             entry.effect,
             entry.heldout_mde_before_cm,
             entry.heldout_mde_after_cm,
             entry.shrinkage,
             entry.ci95[0],
             entry.ci95[1],
-            itself.shrinkage,
-            itself.ci95[0],
-            itself.ci95[1],
+            itself.map_or("not significant".into(), |c| format!(
+                "vs effect off {:+.3} [{:+.3}, {:+.3}]",
+                c.shrinkage, c.ci95[0], c.ci95[1]
+            )),
             entry.signature_cosine,
             entry.refit_wall_s,
             if entry.raced_out { ", raced out" } else { "" }
         ));
+        // "How far" scores the shown refit again with EMD: keep the predictions of every
+        // library refit that can be shown (a significant one, or the largest shrinkage so far,
+        // the order's tie rule included) instead of rolling it out again.
+        let k_now = entries.len();
+        let is_best = *cand != Candidate::ExternalField
+            && best.is_none_or(|b: usize| {
+                entries[b].0.shrinkage.total_cmp(&entry.shrinkage) == std::cmp::Ordering::Less
+            });
+        if is_best {
+            if let Some(b) = best.filter(|&b| !entries[b].0.significant) {
+                kept[b] = None;
+            }
+            best = Some(k_now);
+        }
+        kept.push((is_best || entry.significant).then_some(h_preds));
         entries.push((entry, h));
         models.push(model);
     }
@@ -783,14 +836,17 @@ pub fn diagnose(
         .or_else(|| order.first().copied());
     let how_far = match shown {
         Some(i) => {
-            let before = heldout(&control.family, &control.real, val, None, true)?;
-            let after = heldout(
-                &models[i].family,
-                &models[i].real,
-                val,
-                Some(&control_h),
-                true,
-            )?;
+            let before = score(val, &control_preds, None, true)?;
+            let after = match kept[i].take() {
+                Some(p) => score(val, p.as_slice(), Some(&control_h), true)?,
+                None => heldout(
+                    &models[i].family,
+                    &models[i].real,
+                    val,
+                    Some(&control_h),
+                    true,
+                )?,
+            };
             let sh = |b: f64, a: f64| if b > 0.0 { 1.0 - a / b } else { 0.0 };
             Some(HowFar {
                 effect: entries[i].0.effect.clone(),

@@ -16,15 +16,16 @@ const SAMPLED_SCENES: usize = 8;
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Effort {
     /// Rollouts of training episodes by every refit (control, candidates, the probe from two
-    /// starts), the race's looks and the final rescorings included.
+    /// starts, raced with a race), the race's looks and the final rescorings included.
     pub refit_rollouts: usize,
-    /// Rollouts of held-out episodes: the model as given (twice: for "where" and for its
-    /// score), the control, every candidate and the probe with their effect-off twins, and
-    /// the "how far" pair (the control and the shown candidate again, with EMD).
+    /// Rollouts of held-out episodes: the model as given, the control, every candidate and
+    /// the probe, and at most as many effect-off twins (only refits that beat the control are
+    /// rolled out with their effect off, so this is an upper bound).
     pub heldout_rollouts: usize,
-    /// Rollouts of training episodes for the residual signatures: three per candidate and
-    /// scene (the backbone, the effect at its start and at neutral); with the probe, also the
-    /// backbone on up to [`crate::FOCUS_SCENES`] scenes for its starting point.
+    /// Rollouts of training episodes for the residual signatures: the backbone once per
+    /// scene and two per candidate and scene (the effect at its start and at neutral); with
+    /// the probe, also the backbone on up to [`crate::FOCUS_SCENES`] scenes for its starting
+    /// point.
     pub signature_rollouts: usize,
     /// Work of one rollout: steps × substeps per step × (springs + particles), mean over up
     /// to eight training episodes at the given parameters, with the base effects
@@ -109,26 +110,39 @@ pub fn effort(
         .iter()
         .filter(|c| **c != Candidate::ExternalField && !config.base.iter().any(|b| b.effect == **c))
         .count();
-    // The control, and the probe twice (from the residuals' focus and from its broad start).
-    let whole_refits = 1 + 2 * usize::from(config.probe);
-    let refit_rollouts = if config.race > 0 && config.race < library {
-        let half = config.generations.div_ceil(2);
-        let look = 2 * RACE_SCENES.min(n);
-        whole_refits * whole
-            + library * (half * generation + look)
-            + config.race * ((config.generations - half) * generation + rescoring)
-    } else {
-        (whole_refits + library) * whole
+    // A raced refit runs half the generations and a look at two contenders on the race's
+    // scenes; the second half and the rescoring only if it is kept.
+    let half = config.generations.div_ceil(2);
+    let raced_half = half * generation + 2 * RACE_SCENES.min(n);
+    let second_half = (config.generations - half) * generation + rescoring;
+    // The probe is refitted from two starts (the residuals' focus and its broad start); with a
+    // race the two are raced and one is finished.
+    let probe = match (config.probe, config.race > 0) {
+        (false, _) => 0,
+        (true, false) => 2 * whole,
+        (true, true) => 2 * raced_half + second_half,
     };
+    let library_refits = if config.race > 0 && config.race < library {
+        library * raced_half + config.race * second_half
+    } else {
+        library * whole
+    };
+    // The control, the probe and the library.
+    let refit_rollouts = whole + probe + library_refits;
     let contenders = library + usize::from(config.probe);
-    let how_far = if contenders > 0 { 2 } else { 0 };
-    let heldout_rollouts = (3 + 2 * contenders + how_far) * val.len();
+    // The model as given and the control once each, every contender and, at most, its
+    // effect-off twin (rolled out only for refits that beat the control); "how far" scores
+    // rollouts already made.
+    let heldout_rollouts = (2 + 2 * contenders) * val.len();
     let focus = if config.probe {
         crate::FOCUS_SCENES.min(n)
     } else {
         0
     };
-    let signature_rollouts = 3 * contenders * config.signature_scenes.clamp(1, n) + focus;
+    // Per signature scene the backbone once, and per contender the effect at its start and at
+    // neutral.
+    let scenes = config.signature_scenes.clamp(1, n);
+    let signature_rollouts = (1 + 2 * contenders) * scenes + focus;
     let sampled = &train[..SAMPLED_SCENES.min(n)];
     // The base effects are in every model, and their stiffness counts toward the substep.
     let frame = crate::material_frame(train)?;

@@ -46,17 +46,24 @@ impl ResidualFocus {
 
 /// How the probe's refit started, in a diagnosis's report: it is refitted from the focus and
 /// from its broad start (a field about the data's mean with a 1 m window), and the refit with
-/// the lower training loss is kept.
+/// the lower training loss is kept. With a race ([`crate::DiagnoseConfig::race`] > 0) the two
+/// starts are raced: both run half the generations, and only the one with the lower training
+/// loss then is finished.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ProbeStart {
     /// Where the backbone's training residuals converge.
     pub focus: ResidualFocus,
-    /// Training loss of the refit started at the focus, m².
+    /// Training loss of the refit started at the focus, m² (halfway when `raced`).
     pub focus_train_loss_m2: f64,
-    /// Training loss of the refit started broad, m².
+    /// Training loss of the refit started broad, m² (halfway when `raced`).
     pub broad_train_loss_m2: f64,
     /// Whether the kept refit is the one started at the focus.
     pub from_focus: bool,
+    /// The starts were raced: the losses above are both refits' halfway ones, on
+    /// [`crate::RACE_SCENES`] training scenes (false in reports written before the race, and
+    /// without one).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub raced: bool,
 }
 
 /// The focus of the residuals `scene.truth − prediction` over the tracked, visible positions

@@ -415,8 +415,8 @@ pub fn render_html(d: &Diagnosis, title: &str) -> String {
             "<p>The external-field probe (the last row) was refitted from two starts: a field \
              centred where the backbone's residuals on training episodes converge, ({x:.3}, \
              {y:.3}, {z:.3}) m, {}, with a window of {:.3} m (training loss {:.3e} m²), and a \
-             broad field about the data's mean (training loss {:.3e} m²). The row is the refit \
-             from the {} start, the lower training loss.</p>",
+             broad field about the data's mean (training loss {:.3e} m²){}. The row is the \
+             refit from the {} start, the lower training loss{}.</p>",
             if f.attracting {
                 "pulling toward it"
             } else {
@@ -425,7 +425,17 @@ pub fn render_html(d: &Diagnosis, title: &str) -> String {
             f.window_m(),
             st.focus_train_loss_m2,
             st.broad_train_loss_m2,
-            if st.from_focus { "focus" } else { "broad" }
+            if st.raced {
+                ", both after half the generations (the starts were raced)"
+            } else {
+                ""
+            },
+            if st.from_focus { "focus" } else { "broad" },
+            if st.raced {
+                " halfway; only it ran the second half"
+            } else {
+                ""
+            }
         );
     }
     body += "<h2>Where: error on the object</h2>";

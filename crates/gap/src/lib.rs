@@ -20,7 +20,7 @@
 //!   cannot separate go to the one whose signature matches the residual best ([`break_tie`]).
 //! - With [`DiagnoseConfig::race`] the candidates' refits race: half the generations for
 //!   every candidate, the rest only for the best few by training loss ([`RACE_SCENES`]);
-//!   the control and the probe always run whole. [`effort`] counts a diagnosis's simulator
+//!   the control always runs whole, and the probe's two starts race each other. [`effort`] counts a diagnosis's simulator
 //!   work before it runs (no clock), so a time budget can choose the race and the substep rule.
 //! - A model may already hold some library effects ([`BaseEffect`], e.g. the verdict of an
 //!   earlier diagnosis): they are refitted with the backbone in the control and in every
@@ -57,6 +57,7 @@ mod lanes;
 mod learnable;
 mod locate;
 mod nan;
+mod race;
 mod stats;
 
 pub use base::{BaseEffect, backbone_options};

@@ -35,33 +35,37 @@ fn rollouts_are_counted_as_the_diagnosis_runs_them() {
     // whole.
     let refit = 3 * 3 + 2 * n;
     assert_eq!(whole.refit_rollouts, 6 * refit);
-    // Held out: the model as given (for "where", then scored), the control, each candidate
-    // and the probe with its effect-off twin, and the "how far" pair. Signatures: three
-    // rollouts per candidate and probe on each of up to `signature_scenes` training scenes,
-    // and the backbone on up to FOCUS_SCENES for the probe's start.
-    assert_eq!(whole.heldout_rollouts, (3 + 2 * 4 + 2) * v);
+    // Held out: the model as given and the control once each, each candidate and the probe,
+    // and at most as many effect-off twins ("how far" scores rollouts already made).
+    // Signatures: the backbone once and two rollouts per candidate and probe on each of up to
+    // `signature_scenes` training scenes, and the backbone on up to FOCUS_SCENES for the
+    // probe's start.
+    assert_eq!(whole.heldout_rollouts, (2 + 2 * 4) * v);
     assert_eq!(
         whole.signature_rollouts,
-        3 * 4 * 4.min(n) + gap::FOCUS_SCENES.min(n)
+        (1 + 2 * 4) * 4.min(n) + gap::FOCUS_SCENES.min(n)
     );
-    // A race keeping one of three: the control and the probe (twice) whole, every candidate's first
-    // two generations and its look (two contenders on up to RACE_SCENES scenes), then the
-    // kept one's last generation and rescoring.
+    // A race keeping one of three: the control whole; every candidate's and each of the
+    // probe's two starts' first two generations and their looks (two contenders on up to
+    // RACE_SCENES scenes); then the kept candidate's and the kept start's last generation and
+    // rescoring.
     let raced_cfg = DiagnoseConfig { race: 1, ..small() };
     let raced = gap::effort(&train, &val, &backbone(), &raced_cfg, auto).unwrap();
     let look = 2 * gap::RACE_SCENES.min(n);
+    let (first_half, second_half) = (2 * 3 + look, 3 + 2 * n);
     assert_eq!(
         raced.refit_rollouts,
-        3 * refit + 3 * (2 * 3 + look) + (3 + 2 * n)
+        refit + 2 * first_half + second_half + 3 * first_half + second_half
     );
     assert_eq!(raced.work_per_rollout, whole.work_per_rollout);
-    // Keeping every candidate is no race (as in the diagnosis).
+    // Keeping every candidate is no race for the library (as in the diagnosis); the probe's
+    // starts are still raced.
     let all = DiagnoseConfig { race: 3, ..small() };
     assert_eq!(
         gap::effort(&train, &val, &backbone(), &all, auto)
             .unwrap()
             .refit_rollouts,
-        whole.refit_rollouts
+        refit + 2 * first_half + second_half + 3 * refit
     );
     // A base effect is part of the model, not a candidate: one refit fewer.
     let based = DiagnoseConfig {
@@ -70,7 +74,7 @@ fn rollouts_are_counted_as_the_diagnosis_runs_them() {
     };
     let b = gap::effort(&train, &val, &backbone(), &based, auto).unwrap();
     assert_eq!(b.refit_rollouts, 5 * refit);
-    assert_eq!(b.heldout_rollouts, (3 + 2 * 3 + 2) * v);
+    assert_eq!(b.heldout_rollouts, (2 + 2 * 3) * v);
     assert!(b.work() > 0.0 && b.estimated_s() > 0.0);
     // A generation samples at most every training scene.
     let many = DiagnoseConfig {

@@ -37,18 +37,26 @@ fn report_json_has_the_documented_schema() {
         let ci = r["ci95"].as_array().unwrap();
         assert_eq!(ci.len(), 2);
         assert!(ci[0].as_f64().unwrap() <= ci[1].as_f64().unwrap());
-        // The same refit with its effect switched off: a significant candidate needs both.
+        // The same refit with its effect switched off, measured only where the refit beats
+        // the control (its interval above 0): a significant candidate needs both.
         let own = &r["effect_itself"];
-        assert!(own["shrinkage"].as_f64().unwrap().is_finite());
-        let own_ci: Vec<f64> = own["ci95"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|c| c.as_f64().unwrap())
-            .collect();
-        assert!(own_ci[0] <= own_ci[1]);
+        let beats = ci[0].as_f64().unwrap() > 0.0;
+        assert_eq!(!own.is_null(), beats, "{r}");
+        if beats {
+            assert!(own["shrinkage"].as_f64().unwrap().is_finite());
+            let own_ci: Vec<f64> = own["ci95"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|c| c.as_f64().unwrap())
+                .collect();
+            assert!(own_ci[0] <= own_ci[1]);
+            if r["significant"].as_bool().unwrap() {
+                assert!(own_ci[0] > 0.0);
+            }
+        }
         if r["significant"].as_bool().unwrap() {
-            assert!(ci[0].as_f64().unwrap() > 0.0 && own_ci[0] > 0.0);
+            assert!(beats);
         }
         // Per-episode errors, so that a reader can redo the statistics: their mean is the
         // reported held-out MDE.
@@ -86,6 +94,9 @@ fn report_json_has_the_documented_schema() {
     );
     assert_eq!(w["phases"].as_array().unwrap().len(), 3);
     assert!(v["how_far"]["before"]["emd_cm"].as_f64().unwrap() > 0.0);
+    // The probe is always checked against its effect switched off (the rule compares it with
+    // the chosen candidate when its effect carries its gain).
+    assert!(v["probe"]["effect_itself"]["shrinkage"].is_f64());
     // Where the probe started: refitted from the focus of the backbone's training residuals
     // (near the data) and from its broad start, the lower training loss kept.
     let start = d.probe_start.expect("the probe's starts");
@@ -194,13 +205,28 @@ fn a_race_keeps_the_best_refits_whole_and_marks_the_others() {
         lines.iter().any(|l| l.starts_with("race: 3 candidates")),
         "{lines:?}"
     );
-    // The control and the probe are never raced.
+    // The control is never raced.
     assert_eq!(a.control.fitted, b.control.fitted);
+    // The probe's two starts are raced against each other: the halfway losses decide which
+    // is finished, and the finished one ran its whole budget. On this fixture the halfway
+    // order is the final one, so the probe's row is the unraced diagnosis's.
+    let (sa, sb) = (a.probe_start.unwrap(), b.probe_start.unwrap());
+    assert!(!sa.raced && sb.raced);
+    assert_eq!(
+        sb.from_focus,
+        sb.focus_train_loss_m2 < sb.broad_train_loss_m2
+    );
+    assert!(
+        lines.iter().any(|l| l.starts_with("probe's starts raced")),
+        "{lines:?}"
+    );
+    assert_eq!(sa.from_focus, sb.from_focus);
     assert_eq!(
         a.probe.as_ref().unwrap().fitted,
         b.probe.as_ref().unwrap().fitted
     );
     assert!(!b.probe.as_ref().unwrap().raced_out);
+    assert!(gap::render_html(&b, "t").contains("the starts were raced"));
     let out: Vec<_> = b.ranking.iter().filter(|r| r.raced_out).collect();
     assert_eq!(out.len(), 2, "one of three kept");
     let kept = b.ranking.iter().find(|r| !r.raced_out).unwrap();

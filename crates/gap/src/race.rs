@@ -1,0 +1,130 @@
+//! Successive halving of refits ([`DiagnoseConfig::race`]): run each for half the
+//! generations, look at every one on the same [`RACE_SCENES`] training scenes, and finish only
+//! the best. A finished refit is bit for bit the uninterrupted one ([`fit::PausedFit`]), so a
+//! race changes a diagnosis only where the halfway order differs from the final one.
+
+use std::time::Instant;
+
+use fit::FitConfig;
+use scene::Scene;
+
+use crate::GapError;
+use crate::candidates::{Candidate, CandidateFamily};
+use crate::diagnose::{DiagnoseConfig, Model, RACE_SCENES};
+
+/// The race of [`DiagnoseConfig::race`]: the refits of the library candidates among `all`
+/// (the probe is not raced), index-aligned with `all`; `None` where the candidate is not raced
+/// (the probe, or every candidate when there is no race or nothing to cut).
+pub(crate) fn race(
+    train: &[Scene],
+    all: &[Candidate],
+    config: &DiagnoseConfig,
+    fit_cfg: &FitConfig,
+    family_of: &dyn Fn(Option<Candidate>) -> Result<CandidateFamily, GapError>,
+    progress: &mut dyn FnMut(&str),
+) -> Result<Vec<Option<Model>>, GapError> {
+    let racers: Vec<usize> = (0..all.len())
+        .filter(|&k| all[k] != Candidate::ExternalField)
+        .collect();
+    let mut out: Vec<Option<Model>> = all.iter().map(|_| None).collect();
+    if config.race == 0 || config.race >= racers.len() {
+        return Ok(out);
+    }
+    let half = config.generations.div_ceil(2);
+    let mut runs = Vec::new();
+    for &k in &racers {
+        let t = Instant::now();
+        let family = family_of(Some(all[k]))?;
+        let mut run = fit::PausedFit::start(train, &family, fit_cfg)?;
+        run.advance(train, &family, half)?;
+        let look = run.clone().finish(train, &family, 1, RACE_SCENES)?;
+        runs.push((k, family, run, look, t.elapsed().as_secs_f64()));
+    }
+    let mut order: Vec<usize> = (0..runs.len()).collect();
+    order.sort_by(|&a, &b| {
+        runs[a]
+            .3
+            .best_loss
+            .total_cmp(&runs[b].3.best_loss)
+            .then(a.cmp(&b))
+    });
+    let kept = &order[..config.race];
+    progress(&format!(
+        "race: {} candidates after {half} of {} generations, by training loss on {} scenes: {}; kept {}",
+        runs.len(),
+        config.generations,
+        RACE_SCENES.min(train.len()),
+        order
+            .iter()
+            .map(|&i| format!("{} {:.3e}", all[runs[i].0].name(), runs[i].3.best_loss))
+            .collect::<Vec<_>>()
+            .join(", "),
+        config.race
+    ));
+    for (i, (k, family, mut run, look, wall)) in runs.into_iter().enumerate() {
+        let model = if kept.contains(&i) {
+            let t = Instant::now();
+            run.advance(train, &family, config.generations)?;
+            let done = run.finish(train, &family, config.rescore, config.rescore_scenes)?;
+            Model {
+                family,
+                real: done.best,
+                train_loss: done.best_loss,
+                wall_s: wall + t.elapsed().as_secs_f64(),
+                raced_out: false,
+            }
+        } else {
+            Model {
+                family,
+                real: look.best,
+                train_loss: look.best_loss,
+                wall_s: wall,
+                raced_out: true,
+            }
+        };
+        out[k] = Some(model);
+    }
+    Ok(out)
+}
+
+/// The probe's two starts raced ([`DiagnoseConfig::race`] > 0): both refits (`families`, the
+/// one started at the residuals' focus first, then the broad one) run half the generations,
+/// and only the one with the lower training loss on [`RACE_SCENES`] scenes then is finished.
+/// Returns the finished refit, both halfway losses (focus, broad; m²) and whether the focus
+/// start won (ties go to the broad start, as between finished refits).
+pub(crate) fn race_probe_starts(
+    train: &[Scene],
+    families: [CandidateFamily; 2],
+    config: &DiagnoseConfig,
+    fit_cfg: &FitConfig,
+) -> Result<(Model, [f64; 2], bool), GapError> {
+    let t = Instant::now();
+    let half = config.generations.div_ceil(2);
+    let mut runs = Vec::with_capacity(2);
+    let mut looks = [0.0; 2];
+    for (family, look) in families.iter().zip(&mut looks) {
+        let mut run = fit::PausedFit::start(train, family, fit_cfg)?;
+        run.advance(train, family, half)?;
+        *look = run.clone().finish(train, family, 1, RACE_SCENES)?.best_loss;
+        runs.push(run);
+    }
+    let from_focus = looks[0] < looks[1];
+    let w = usize::from(!from_focus);
+    let [focus_family, broad_family] = families;
+    let family = if from_focus {
+        focus_family
+    } else {
+        broad_family
+    };
+    let mut run = runs.swap_remove(w);
+    run.advance(train, &family, config.generations)?;
+    let done = run.finish(train, &family, config.rescore, config.rescore_scenes)?;
+    let model = Model {
+        family,
+        real: done.best,
+        train_loss: done.best_loss,
+        wall_s: t.elapsed().as_secs_f64(),
+        raced_out: false,
+    };
+    Ok((model, looks, from_focus))
+}
