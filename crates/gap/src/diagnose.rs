@@ -384,9 +384,6 @@ fn effect_switched_off(real: &[f64], cand: Candidate) -> Vec<f64> {
     off
 }
 
-/// Cosine between the residual `truth − base` and the effect's signature
-/// `pred(start) − pred(neutral)` (the start on this data, [`Candidate::start_in`]) over the
-/// tracked, visible positions of `scenes`.
 /// The backbone `base` with its base effects at their given values and `extra` (the
 /// candidate `cand` at values `v`), as the signatures roll it out.
 fn signature_options(
@@ -428,6 +425,10 @@ fn signature_plain(
         .collect()
 }
 
+/// Cosine between the residual `truth − base` and the effect's signature
+/// `pred(start) − pred(neutral)` (the start on this data, [`Candidate::start_in`]) over the
+/// tracked, visible positions of `scenes`; `plain` holds the
+/// backbone's rollouts of `scenes` ([`signature_plain`]).
 fn signature_cosine(
     base: &SpringParams,
     base_effects: &[BaseEffect],
@@ -778,10 +779,13 @@ pub fn diagnose(
             entry.shrinkage,
             entry.ci95[0],
             entry.ci95[1],
-            itself.map_or("not significant".into(), |c| format!(
-                "vs effect off {:+.3} [{:+.3}, {:+.3}]",
-                c.shrinkage, c.ci95[0], c.ci95[1]
-            )),
+            itself.map_or(
+                "no effect-off check (interval reaches 0)".into(),
+                |c| format!(
+                    "vs effect off {:+.3} [{:+.3}, {:+.3}]",
+                    c.shrinkage, c.ci95[0], c.ci95[1]
+                )
+            ),
             entry.signature_cosine,
             entry.refit_wall_s,
             if entry.raced_out { ", raced out" } else { "" }

@@ -13,7 +13,7 @@ use crate::candidates::{Candidate, CandidateFamily};
 use crate::diagnose::{DiagnoseConfig, Model, RACE_SCENES};
 
 /// The race of [`DiagnoseConfig::race`]: the refits of the library candidates among `all`
-/// (the probe is not raced), index-aligned with `all`; `None` where the candidate is not raced
+/// (the probe's two starts race in [`race_probe_starts`]), index-aligned with `all`; `None` where the candidate is not raced
 /// (the probe, or every candidate when there is no race or nothing to cut).
 pub(crate) fn race(
     train: &[Scene],

@@ -94,6 +94,14 @@ fn report_json_has_the_documented_schema() {
     );
     assert_eq!(w["phases"].as_array().unwrap().len(), 3);
     assert!(v["how_far"]["before"]["emd_cm"].as_f64().unwrap() > 0.0);
+    // "How far" scores the control and the shown refit: the same models, the same errors.
+    let hf = d.how_far.as_ref().unwrap();
+    assert_eq!(hf.before.mde_cm, d.control.heldout_mde_cm);
+    let shown = d.ranking.iter().find(|r| r.effect == hf.effect).unwrap();
+    assert_eq!(
+        hf.after.per_episode_mde_cm,
+        shown.heldout_mde_per_episode_cm
+    );
     // The probe is always checked against its effect switched off (the rule compares it with
     // the chosen candidate when its effect carries its gain).
     assert!(v["probe"]["effect_itself"]["shrinkage"].is_f64());
