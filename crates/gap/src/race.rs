@@ -12,9 +12,35 @@ use crate::GapError;
 use crate::candidates::{Candidate, CandidateFamily};
 use crate::diagnose::{DiagnoseConfig, Model, RACE_SCENES};
 
+/// A raced refit's first half: started, advanced half of `config.generations`, and its look
+/// (the optimiser's mean and the best generation's best on [`RACE_SCENES`] training scenes).
+fn first_half(
+    train: &[Scene],
+    family: &CandidateFamily,
+    config: &DiagnoseConfig,
+    fit_cfg: &FitConfig,
+) -> Result<(fit::PausedFit, fit::FitOutcome), GapError> {
+    let mut run = fit::PausedFit::start(train, family, fit_cfg)?;
+    run.advance(train, family, config.generations.div_ceil(2))?;
+    let look = run.clone().finish(train, family, 1, RACE_SCENES)?;
+    Ok((run, look))
+}
+
+/// A kept refit's second half and final rescoring: bit for bit the unraced refit.
+fn second_half(
+    train: &[Scene],
+    family: &CandidateFamily,
+    mut run: fit::PausedFit,
+    config: &DiagnoseConfig,
+) -> Result<fit::FitOutcome, GapError> {
+    run.advance(train, family, config.generations)?;
+    Ok(run.finish(train, family, config.rescore, config.rescore_scenes)?)
+}
+
 /// The race of [`DiagnoseConfig::race`]: the refits of the library candidates among `all`
-/// (the probe's two starts race in [`race_probe_starts`]), index-aligned with `all`; `None` where the candidate is not raced
-/// (the probe, or every candidate when there is no race or nothing to cut).
+/// (the probe's two starts race in [`race_probe_starts`]), index-aligned with `all`; `None`
+/// where the candidate is not raced (the probe, or every candidate when there is no race or
+/// nothing to cut).
 pub(crate) fn race(
     train: &[Scene],
     all: &[Candidate],
@@ -35,9 +61,7 @@ pub(crate) fn race(
     for &k in &racers {
         let t = Instant::now();
         let family = family_of(Some(all[k]))?;
-        let mut run = fit::PausedFit::start(train, &family, fit_cfg)?;
-        run.advance(train, &family, half)?;
-        let look = run.clone().finish(train, &family, 1, RACE_SCENES)?;
+        let (run, look) = first_half(train, &family, config, fit_cfg)?;
         runs.push((k, family, run, look, t.elapsed().as_secs_f64()));
     }
     let mut order: Vec<usize> = (0..runs.len()).collect();
@@ -61,11 +85,10 @@ pub(crate) fn race(
             .join(", "),
         config.race
     ));
-    for (i, (k, family, mut run, look, wall)) in runs.into_iter().enumerate() {
+    for (i, (k, family, run, look, wall)) in runs.into_iter().enumerate() {
         let model = if kept.contains(&i) {
             let t = Instant::now();
-            run.advance(train, &family, config.generations)?;
-            let done = run.finish(train, &family, config.rescore, config.rescore_scenes)?;
+            let done = second_half(train, &family, run, config)?;
             Model {
                 family,
                 real: done.best,
@@ -99,26 +122,21 @@ pub(crate) fn race_probe_starts(
     fit_cfg: &FitConfig,
 ) -> Result<(Model, [f64; 2], bool), GapError> {
     let t = Instant::now();
-    let half = config.generations.div_ceil(2);
     let mut runs = Vec::with_capacity(2);
     let mut looks = [0.0; 2];
     for (family, look) in families.iter().zip(&mut looks) {
-        let mut run = fit::PausedFit::start(train, family, fit_cfg)?;
-        run.advance(train, family, half)?;
-        *look = run.clone().finish(train, family, 1, RACE_SCENES)?.best_loss;
+        let (run, halfway) = first_half(train, family, config, fit_cfg)?;
+        *look = halfway.best_loss;
         runs.push(run);
     }
     let from_focus = looks[0] < looks[1];
-    let w = usize::from(!from_focus);
     let [focus_family, broad_family] = families;
-    let family = if from_focus {
-        focus_family
+    let (family, run) = if from_focus {
+        (focus_family, runs.swap_remove(0))
     } else {
-        broad_family
+        (broad_family, runs.swap_remove(1))
     };
-    let mut run = runs.swap_remove(w);
-    run.advance(train, &family, config.generations)?;
-    let done = run.finish(train, &family, config.rescore, config.rescore_scenes)?;
+    let done = second_half(train, &family, run, config)?;
     let model = Model {
         family,
         real: done.best,
