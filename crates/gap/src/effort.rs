@@ -19,8 +19,8 @@ pub struct Effort {
     /// starts, raced with a race), the race's looks and the final rescorings included.
     pub refit_rollouts: usize,
     /// Rollouts of held-out episodes: the model as given, the control, every candidate and
-    /// the probe, and at most as many effect-off twins (only refits that beat the control are
-    /// rolled out with their effect off, so this is an upper bound).
+    /// the probe, and at most as many effect-off twins (only the probe and the library refits
+    /// that beat the control are rolled out with their effect off, so this is an upper bound).
     pub heldout_rollouts: usize,
     /// Rollouts of training episodes for the residual signatures: the backbone once per
     /// scene and two per candidate and scene (the effect at its start and at neutral); with
