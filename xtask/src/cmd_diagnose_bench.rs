@@ -170,6 +170,12 @@ pub struct DiagnoseBenchArgs {
     /// base search's diagnoses are not raced.
     #[arg(long, default_value_t = 0)]
     pub race: usize,
+    /// Training episodes sampled per generation by every case's diagnosis refits (default:
+    /// `--samples`); the backbone fit and the base search keep `--samples`, so that benches
+    /// that differ only here diagnose their cases against the same base models. Measures what
+    /// the time budget's fewer-samples rung costs in verdicts.
+    #[arg(long)]
+    pub case_samples: Option<usize>,
     /// Most base effects per object (0: diagnose against the bare backbone).
     #[arg(long, default_value_t = 2)]
     pub max_base: usize,
@@ -429,27 +435,32 @@ fn fit_backbone(
     Ok((BackboneFamily::params(&out.best), out, cfg))
 }
 
-/// One diagnosis with the bench's settings; `race` as `diagnose --race` (the cases use
-/// `--race`, the base search never races, so that raced and unraced benches of one seed
-/// diagnose their cases against the same base models).
+/// One diagnosis with the bench's settings: a case's (`case`) with `--race` and
+/// `--case-samples`, the base search's without either, so that benches of one seed that differ
+/// only in those diagnose their cases against the same base models.
 fn diagnose(
     train: &[Scene],
     val: &[Scene],
     start: &SpringParams,
     base: &[BaseEffect],
     args: &DiagnoseBenchArgs,
-    race: usize,
+    case: bool,
 ) -> anyhow::Result<Diagnosis> {
-    let cfg = case_config(base, args, race);
+    let cfg = case_config(base, args, case);
     Ok(gap::diagnose(train, val, start, &cfg, &mut |_| {})?)
 }
 
 /// The settings of [`diagnose`].
-fn case_config(base: &[BaseEffect], args: &DiagnoseBenchArgs, race: usize) -> DiagnoseConfig {
+fn case_config(base: &[BaseEffect], args: &DiagnoseBenchArgs, case: bool) -> DiagnoseConfig {
+    let (race, samples) = if case {
+        (args.race, args.case_samples.unwrap_or(args.samples))
+    } else {
+        (0, args.samples)
+    };
     DiagnoseConfig {
         race,
         generations: args.generations,
-        samples: args.samples,
+        samples,
         seed: args.seed,
         rescore: args.rescore,
         rescore_scenes: args.rescore_scenes,
@@ -517,7 +528,7 @@ fn base_model(
     let mut steps = Vec::new();
     let last = loop {
         let t = Instant::now();
-        let d = diagnose(&train, &val, &start, &base, args, 0)?;
+        let d = diagnose(&train, &val, &start, &base, args, false)?;
         write_report(
             &dir.join(format!("report-base{}", steps.len())),
             &d,
@@ -825,12 +836,12 @@ pub fn run_bench(args: &DiagnoseBenchArgs) -> anyhow::Result<BenchSummary> {
                 &train,
                 &val,
                 &model.model,
-                &case_config(&base, args, args.race),
+                &case_config(&base, args, true),
                 args.substep.substep(),
             )?
             .estimated_s();
             let td = Instant::now();
-            let mut d = diagnose(&train, &val, &model.model, &base, args, args.race)?;
+            let mut d = diagnose(&train, &val, &model.model, &base, args, true)?;
             let wall = td.elapsed().as_secs_f64();
             let mut network_wall = 0.0;
             if args.network_minutes > 0.0 && network_cases.contains(truth) {
@@ -1162,6 +1173,7 @@ mod tests {
 
     #[test]
     fn a_raced_bench_races_the_cases_not_the_base_search_and_flags_raced_out_truths() {
+        // `--case-samples` too reaches the cases' diagnoses only.
         let dir = std::env::temp_dir().join(format!("pgrd-bench-race-{}", std::process::id()));
         let work = dir.display().to_string();
         let args = bench_args(&[
@@ -1185,6 +1197,8 @@ mod tests {
             "1",
             "--race",
             "1",
+            "--case-samples",
+            "1",
             "--work",
             &work,
         ]);
@@ -1195,10 +1209,12 @@ mod tests {
         };
         let base = read("rope-none/report-base0");
         assert_eq!(base.config.race, 0, "the base search is not raced");
+        assert_eq!(base.config.samples, 2, "the base search keeps --samples");
         assert_eq!(summary.cases.len(), 2);
         for case in &summary.cases {
             let d = read(&format!("rope-{}-x1/report", case.truth));
             assert_eq!(d.config.race, 1);
+            assert_eq!(d.config.samples, 1);
             let raced = d.ranking.iter().filter(|r| r.raced_out).count();
             assert_eq!(raced, d.ranking.len() - 1, "all but one raced out");
             let truth = d.ranking.iter().find(|r| r.effect == case.truth).unwrap();
