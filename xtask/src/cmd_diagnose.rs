@@ -66,11 +66,13 @@ pub struct DiagnoseArgs {
     pub race: Option<usize>,
     /// Time budget, minutes on the reference 2-core host of `gap::SECONDS_PER_WORK` (0:
     /// none). When the diagnosis's estimated time (`gap::effort`: simulator work counted
-    /// before the run, no clock, so the choice is the same on every run) is above it, the
-    /// refits race (`--race 3`), then also shrink to the bench's size (unless `--generations`,
-    /// `--samples` or `--rescore-scenes` is given), then also take the spectral substep
-    /// (the race and the substep unless `--race` or `--substep` is given); the command says so
-    /// and `report.json` records it (`budget`). `docs/gap.md`, "Time budget".
+    /// before the run, no clock, so the choice is the same on every run) times
+    /// `gap::ESTIMATE_MARGIN` (the largest measured overrun) is above it, the refits race
+    /// (`--race 3`), then also shrink to the bench's size, then also take the spectral
+    /// substep, then also sample 4 episodes a generation instead of 6 (the refit sizes unless
+    /// `--generations`, `--samples` or `--rescore-scenes` is given; the race and the substep
+    /// unless `--race` or `--substep` is given); the command says so and `report.json`
+    /// records it (`budget`). `docs/gap.md`, "Time budget".
     #[arg(long, default_value_t = 10.0)]
     pub budget_min: f64,
     /// Print the estimated time of the diagnosis as given and with the speed options the
@@ -354,6 +356,15 @@ const BENCH_REFITS: Refits = Refits {
     rescore_scenes: 16,
 };
 
+/// The budget's last resort, taken only when no other level fits: the bench's refit size
+/// with 4 training episodes sampled per generation instead of 6 (a noisier generation for a
+/// third fewer rollouts; its cost in bench verdicts: `docs/gap.md`, "Fewer samples per
+/// generation").
+const FEWER_SAMPLES: Refits = Refits {
+    samples: 4,
+    ..BENCH_REFITS
+};
+
 impl Refits {
     fn of(config: &DiagnoseConfig) -> Refits {
         Refits {
@@ -406,8 +417,9 @@ impl Level {
 /// (when neither `--race` nor `--substep` was given; it changed 2 of 106 bench verdicts), the
 /// bench's default refit size (when none of `--generations`, `--samples`, `--rescore-scenes`
 /// was given; fewer generations cost bench verdicts), the spectral substep (with the race,
-/// when the run's rule is `auto`; it cost verdicts on two of three bench seeds). Usually each
-/// is faster than the one before.
+/// when the run's rule is `auto`; it cost verdicts on two of three bench seeds), then, when the
+/// refit size was left open too, 4 episodes sampled per generation instead of 6
+/// ([`FEWER_SAMPLES`]). Usually each is faster than the one before.
 fn effort_levels(
     args: &DiagnoseArgs,
     run_substep: SubstepArg,
@@ -437,6 +449,10 @@ fn effort_levels(
         substep = SubstepArg::Spectral;
         options.push((refits, race, substep));
     }
+    if refits_open && refits.samples > FEWER_SAMPLES.samples {
+        refits = FEWER_SAMPLES;
+        options.push((refits, race, substep));
+    }
     options
         .into_iter()
         .map(|(refits, race, substep)| {
@@ -454,11 +470,15 @@ fn effort_levels(
         .collect()
 }
 
-/// The first level whose estimate is within `budget_min` (when none is, the cheapest, the
-/// first of equals: on small settings a race can cost more than it saves, and the spectral
-/// substep nothing where both rules sit at the accuracy cap), with the record of the choice;
-/// `None` without a budget or a choice to make.
-fn choose_level(budget_min: f64, levels: &[Level]) -> Option<(usize, gap::BudgetChoice)> {
+/// The first level whose estimate times `margin` ([`gap::ESTIMATE_MARGIN`] in use) is within
+/// `budget_min` (when none is, the cheapest, the first of equals: on small settings a race can
+/// cost more than it saves, and the spectral substep nothing where both rules sit at the
+/// accuracy cap), with the record of the choice; `None` without a budget or a choice to make.
+fn choose_level(
+    budget_min: f64,
+    margin: f64,
+    levels: &[Level],
+) -> Option<(usize, gap::BudgetChoice)> {
     // NaN counts as no budget.
     if budget_min.is_nan() || budget_min <= 0.0 || levels.len() < 2 {
         return None;
@@ -466,12 +486,13 @@ fn choose_level(budget_min: f64, levels: &[Level]) -> Option<(usize, gap::Budget
     let budget_s = 60.0 * budget_min;
     let cost = |k: usize| levels[k].effort.estimated_s();
     let k = (0..levels.len())
-        .find(|&k| cost(k) <= budget_s)
+        .find(|&k| cost(k) * margin <= budget_s)
         .unwrap_or_else(|| (1..levels.len()).fold(0, |b, k| if cost(k) < cost(b) { k } else { b }));
     Some((
         k,
         gap::BudgetChoice {
             budget_s,
+            margin,
             full_estimated_s: levels[0].effort.estimated_s(),
             estimated_s: levels[k].effort.estimated_s(),
             options: levels[k].options(&levels[0]),
@@ -532,12 +553,13 @@ pub fn estimate(args: &DiagnoseArgs) -> anyhow::Result<()> {
         levels,
         ..
     } = setup(args)?;
-    let chosen = choose_level(args.budget_min, &levels).map(|(k, _)| k);
+    let chosen = choose_level(args.budget_min, gap::ESTIMATE_MARGIN, &levels).map(|(k, _)| k);
     println!(
-        "estimated diagnosis time of {} on the reference 2-core host ({} training, {} held-out episodes):",
+        "estimated diagnosis time of {} on the reference 2-core host ({} training, {} held-out episodes; a budget counts each estimate x{:.2}, the largest overrun measured):",
         data.meta.object,
         train.len(),
-        val.len()
+        val.len(),
+        gap::ESTIMATE_MARGIN
     );
     for (k, l) in levels.iter().enumerate() {
         let options = l.options(&levels[0]);
@@ -586,13 +608,14 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
         levels,
     } = setup(args)?;
     let quiet = args.quiet;
-    let budget = choose_level(args.budget_min, &levels);
+    let budget = choose_level(args.budget_min, gap::ESTIMATE_MARGIN, &levels);
     if let Some((k, choice)) = &budget {
         let chosen = &levels[*k];
         if !quiet {
             println!(
-                "  budget {:.0} s: estimated {:.0} s as given{}",
+                "  budget {:.0} s, each estimate counted x{:.2} (the largest measured overrun): estimated {:.0} s as given{}",
                 choice.budget_s,
+                choice.margin,
                 choice.full_estimated_s,
                 if choice.options.is_empty() {
                     String::new()
@@ -603,7 +626,7 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
                     )
                 }
             );
-            if choice.estimated_s > choice.budget_s {
+            if choice.estimated_s * choice.margin > choice.budget_s {
                 println!(
                     "  note: no option fits the budget; fewer --generations or --samples, or \
                      fewer --candidates, would shorten it further"
@@ -756,7 +779,7 @@ mod tests {
             level(3, SubstepArg::Auto, 160.0),
             level(3, SubstepArg::Spectral, 80.0),
         ];
-        let pick = |minutes: f64| choose_level(minutes, &levels).map(|(k, c)| (k, c.options));
+        let pick = |minutes: f64| choose_level(minutes, 1.0, &levels).map(|(k, c)| (k, c.options));
         assert_eq!(pick(10.0), Some((0, String::new())));
         assert_eq!(pick(3.0), Some((1, "--race 3".to_string())));
         assert_eq!(
@@ -774,19 +797,25 @@ mod tests {
             level(3, SubstepArg::Auto, 640.0),
             level(3, SubstepArg::Spectral, 320.0),
         ];
-        assert_eq!(choose_level(1.0, &odd).map(|(k, _)| k), Some(0));
+        assert_eq!(choose_level(1.0, 1.0, &odd).map(|(k, _)| k), Some(0));
         let flat = [
             level(0, SubstepArg::Auto, 320.0),
             level(3, SubstepArg::Auto, 160.0),
             level(3, SubstepArg::Spectral, 160.0),
         ];
-        assert_eq!(choose_level(1.0, &flat).map(|(k, _)| k), Some(1));
-        let (_, c) = choose_level(2.0, &levels).unwrap();
+        assert_eq!(choose_level(1.0, 1.0, &flat).map(|(k, _)| k), Some(1));
+        let (_, c) = choose_level(2.0, 1.0, &levels).unwrap();
         assert!((c.full_estimated_s - 320.0).abs() < 1e-6 && (c.estimated_s - 80.0).abs() < 1e-6);
         // No budget, or nothing to choose between (options given): no choice.
-        assert!(choose_level(0.0, &levels).is_none());
-        assert!(choose_level(f64::NAN, &levels).is_none());
-        assert!(choose_level(1.0, &levels[..1]).is_none());
+        assert!(choose_level(0.0, 1.0, &levels).is_none());
+        assert!(choose_level(f64::NAN, 1.0, &levels).is_none());
+        assert!(choose_level(1.0, 1.0, &levels[..1]).is_none());
+        // With a margin each estimate counts that many times against the budget: 320 s
+        // fits 6 minutes bare, not with 1.32, and the record says what was counted.
+        assert_eq!(pick(6.0), Some((0, String::new())));
+        let (k, c) = choose_level(6.0, 1.32, &levels).unwrap();
+        assert_eq!((k, c.margin), (1, 1.32));
+        assert!((c.estimated_s - 160.0).abs() < 1e-6);
         // A smaller refit size is named by all three of its flags.
         let smaller = Level {
             refits: BENCH_REFITS,
@@ -810,8 +839,9 @@ mod tests {
         let data = crate::cmd_fit::FIXTURE_ROPE;
         let fit = crate::cmd_fit::FitArgs::quick_rope_fixture(dir.join("run"));
         crate::cmd_fit::run(&fit).unwrap();
-        // The ladder a budget climbs: the bench's refit size only when the user left all three
-        // of its flags open, the race and the spectral substep only when both of theirs are.
+        // The ladder a budget climbs: the bench's refit size, and last its fewer samples, only
+        // when the user left all three of their flags open, the race and the spectral substep
+        // only when both of theirs are.
         let ladder = |extra: &[&str]| -> Vec<(String, f64)> {
             let run = dir.join("run");
             let run = run.to_str().unwrap();
@@ -833,9 +863,13 @@ mod tests {
                 "--race 3",
                 "--generations 8 --samples 6 --rescore-scenes 16 --race 3",
                 "--generations 8 --samples 6 --rescore-scenes 16 --race 3 --substep spectral",
+                "--generations 8 --samples 4 --rescore-scenes 16 --race 3 --substep spectral",
             ]
         );
         assert!(open[2].1 < open[1].1, "{open:?}");
+        // The fixture's three training episodes are fewer than either sample size, so the
+        // last rung saves nothing here (the choice then keeps the earlier level of equals).
+        assert!(open[4].1 <= open[3].1, "{open:?}");
         let sized = ladder(&["--samples", "8"]);
         let names: Vec<&str> = sized.iter().map(|(o, _)| o.as_str()).collect();
         assert_eq!(names, ["", "--race 3", "--race 3 --substep spectral"]);
@@ -843,7 +877,11 @@ mod tests {
         let names: Vec<&str> = raced.iter().map(|(o, _)| o.as_str()).collect();
         assert_eq!(
             names,
-            ["", "--generations 8 --samples 6 --rescore-scenes 16"]
+            [
+                "",
+                "--generations 8 --samples 6 --rescore-scenes 16",
+                "--generations 8 --samples 4 --rescore-scenes 16",
+            ]
         );
         assert_eq!(ladder(&["--race", "2", "--generations", "10"]).len(), 1);
         let diagnose = |out: &str, extra: &[&str]| -> Diagnosis {
@@ -920,6 +958,9 @@ mod tests {
         assert_eq!(stiff.substep, Some(springs::Substep::SPECTRAL));
         let page = std::fs::read_to_string(dir.join("stiff").join("report.html")).unwrap();
         assert!(page.contains("<code>--race 3 --substep spectral</code>"));
+        // The margin is recorded and named on the page.
+        assert_eq!(stiff.budget.as_ref().unwrap().margin, gap::ESTIMATE_MARGIN);
+        assert!(page.contains(&format!("counted {:.2} times", gap::ESTIMATE_MARGIN)));
         assert_eq!(stiff.config.race, 3);
         // Options given on the command line are not overruled, and nothing is recorded.
         let given = diagnose("given", &["--budget-min", "1e-9", "--race", "0"]);

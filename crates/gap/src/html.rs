@@ -271,10 +271,19 @@ pub fn render_html(d: &Diagnosis, title: &str) -> String {
     if let Some(b) = d.budget.as_ref().filter(|b| !b.options.is_empty()) {
         let _ = write!(
             body,
-            "<p>Time budget {:.0} min: estimated {:.0} s as given, so the diagnosis ran with \
+            "<p>Time budget {:.0} min: estimated {:.0} s as given{}, so the diagnosis ran with \
              <code>{}</code> (estimated {:.0} s). <code>--budget-min 0</code> runs it whole.</p>",
             b.budget_s / 60.0,
             b.full_estimated_s,
+            if b.margin > 1.0 {
+                format!(
+                    ", each estimate counted {:.2} times against the budget (the largest \
+                     overrun measured)",
+                    b.margin
+                )
+            } else {
+                String::new()
+            },
             esc(&b.options),
             b.estimated_s
         );

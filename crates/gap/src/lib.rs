@@ -66,7 +66,7 @@ pub use diagnose::{
     ControlFit, DiagnoseConfig, Diagnosis, Heldout, HowFar, RACE_SCENES, RankedEffect, TieBreak,
     diagnose, evaluate, material_frame,
 };
-pub use effort::{BudgetChoice, Effort, SECONDS_PER_WORK, effort};
+pub use effort::{BudgetChoice, ESTIMATE_MARGIN, Effort, SECONDS_PER_WORK, effort};
 pub use focus::{FOCUS_SCENES, ProbeStart, ResidualFocus, focus_of_lines, residual_focus};
 pub use html::render_html;
 pub use judge::{Judgement, judge};
