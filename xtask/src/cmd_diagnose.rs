@@ -357,9 +357,9 @@ const BENCH_REFITS: Refits = Refits {
 };
 
 /// The budget's last resort, taken only when no other level fits: the bench's refit size
-/// with 4 training episodes sampled per generation instead of 6 (a noisier generation for a
-/// third fewer rollouts; its cost in bench verdicts: `docs/gap.md`, "Fewer samples per
-/// generation").
+/// with 4 training episodes sampled per generation instead of 6 (a noisier generation for 28 %
+/// fewer refit rollouts on a default-size dataset; its cost in bench verdicts: `docs/gap.md`,
+/// "A margin and fewer samples in the budget").
 const FEWER_SAMPLES: Refits = Refits {
     samples: 4,
     ..BENCH_REFITS

@@ -69,8 +69,9 @@ pub const SECONDS_PER_WORK: f64 = 6.7e-9;
 /// default diagnoses of the four dearest generated objects with the budget's ladder of
 /// sessions 52–53 (the duster, 615 s against 466 s; the others 0.84–1.21). Its refits move
 /// the stiffness, and with it the substep, away from the fitted backbone's further than the
-/// count can see (the duster's stiffening law from 30 to 470), and the host's own speed drifts
-/// ±11 % between runs. A budget counts each estimate times this margin, so that what it
+/// count can see (the duster's stiffening law from 30 to 470), and the host's own speed moves
+/// between runs (11 % in session 53; 1.3–1.7 times on identical refits in session 54, more
+/// than this margin covers). A budget counts each estimate times this margin, so that what it
 /// chooses fits on the measured objects rather than on average.
 pub const ESTIMATE_MARGIN: f64 = 1.32;
 
