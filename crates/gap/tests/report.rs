@@ -44,12 +44,7 @@ fn report_json_has_the_documented_schema() {
         assert_eq!(!own.is_null(), beats, "{r}");
         if beats {
             assert!(own["shrinkage"].as_f64().unwrap().is_finite());
-            let own_ci: Vec<f64> = own["ci95"]
-                .as_array()
-                .unwrap()
-                .iter()
-                .map(|c| c.as_f64().unwrap())
-                .collect();
+            let own_ci = floats(&own["ci95"]);
             assert!(own_ci[0] <= own_ci[1]);
             if r["significant"].as_bool().unwrap() {
                 assert!(own_ci[0] > 0.0);
@@ -60,12 +55,7 @@ fn report_json_has_the_documented_schema() {
         }
         // Per-episode errors, so that a reader can redo the statistics: their mean is the
         // reported held-out MDE.
-        let per: Vec<f64> = r["heldout_mde_per_episode_cm"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|x| x.as_f64().unwrap())
-            .collect();
+        let per = floats(&r["heldout_mde_per_episode_cm"]);
         assert_eq!(per.len(), val.len());
         let mean = per.iter().sum::<f64>() / per.len() as f64;
         assert!((mean - r["heldout_mde_after_cm"].as_f64().unwrap()).abs() < 1e-9);
@@ -257,4 +247,13 @@ fn a_race_keeps_the_best_refits_whole_and_marks_the_others() {
     let v = serde_json::to_value(&a).unwrap();
     assert!(v["config"].get("race").is_none());
     assert!(v["ranking"][0].get("raced_out").is_none());
+}
+
+/// A JSON array of numbers.
+fn floats(v: &serde_json::Value) -> Vec<f64> {
+    v.as_array()
+        .unwrap()
+        .iter()
+        .map(|x| x.as_f64().unwrap())
+        .collect()
 }
