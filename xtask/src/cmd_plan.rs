@@ -84,6 +84,13 @@ pub struct PlanArgs {
     /// run separately).
     #[arg(long)]
     pub compare: Vec<PathBuf>,
+    /// Add every trial's executed path (the world's observed points and the gripper, one frame
+    /// per step) as a training episode of the dataset in this directory: appended when it
+    /// holds one (e.g. a copy of the run's dataset), else created with the run's dataset's
+    /// metadata. On-policy data: the motions the planner chooses, for training a model on
+    /// them. Not for rerouting (the dataset format has no obstacles).
+    #[arg(long)]
+    pub record: Option<PathBuf>,
 }
 
 /// One trial in the report.
@@ -124,6 +131,11 @@ struct ModelReport {
 pub fn run(args: &PlanArgs) -> anyhow::Result<()> {
     let kind: TaskKind = args.task.parse()?;
     anyhow::ensure!(args.trials >= 1, "--trials must be at least 1");
+    anyhow::ensure!(
+        args.record.is_none() || kind != TaskKind::Reroute,
+        "--record cannot record rerouting: the dataset format has no obstacles, so a model \
+         trained on its paths would never see the slot"
+    );
     let backbone = read_backbone(&args.run)?;
     // The field is per tracked particle of the training data; a task's rope has its own.
     anyhow::ensure!(
@@ -231,6 +243,14 @@ pub fn run(args: &PlanArgs) -> anyhow::Result<()> {
         };
         if let (Some(task), Some(traj)) = (tasks.first(), trajectories.first()) {
             write_gif(&gif, task, traj)?;
+        }
+        if let Some(dir) = &args.record {
+            let added = record_paths(dir, &backbone.dataset, &tasks, &trajectories)?;
+            eprintln!(
+                "{kind} {}: {added} paths added to {} (train split)",
+                model_name(m),
+                dir.display()
+            );
         }
         let mut path_error_cm_mean = std::collections::BTreeMap::new();
         for name in trials
@@ -477,6 +497,61 @@ fn compared_curves(path: &Path, kind: TaskKind) -> anyhow::Result<Vec<(String, V
         .collect()
 }
 
+/// Appends each trial's executed path to the dataset at `dir` (created from the metadata of
+/// `run_dataset`, the dataset the run was fitted on, when `dir` holds none) as a training
+/// episode; returns how many were added. Every trial's rope must match the dataset's step
+/// length and particle count, or the data would not be one model's.
+fn record_paths(
+    dir: &Path,
+    run_dataset: &str,
+    tasks: &[Task],
+    trajectories: &[Trajectory],
+) -> anyhow::Result<usize> {
+    use dataset::{Dataset, DatasetMeta, DatasetWriter, Episode, Manipulation, Split};
+    let mut writer = if dir.join("dataset.json").exists() {
+        DatasetWriter::append(dir)?
+    } else {
+        let meta = match Dataset::open(run_dataset) {
+            Ok(d) => d.meta,
+            Err(_) => DatasetMeta::new("rope", 10.0, Manipulation::Grasp),
+        };
+        DatasetWriter::create(dir, meta)?
+    };
+    let meta = writer.meta();
+    anyhow::ensure!(
+        meta.manipulation == Manipulation::Grasp && (meta.fps - 10.0).abs() < 1e-3,
+        "{}: recorded paths are grasped at 10 frames per second; this dataset is {:?} at {} fps",
+        dir.display(),
+        meta.manipulation,
+        meta.fps
+    );
+    let particles = match meta.episodes.first() {
+        Some(_) => Some(Dataset::open(dir)?.load_episode(0)?.particles()),
+        None => None,
+    };
+    let mut added = 0;
+    for (task, traj) in tasks.iter().zip(trajectories) {
+        let n = task.start.held().len();
+        anyhow::ensure!(
+            particles.is_none_or(|p| p == n),
+            "{}: its episodes have {} particles, the task's rope {n} (--tracked)",
+            dir.display(),
+            particles.unwrap_or(0)
+        );
+        let frames = traj.observed.len();
+        let positions: Vec<Vec3> = traj.observed.iter().flatten().copied().collect();
+        let grippers: Vec<Vec3> = traj.grippers.iter().flatten().copied().collect();
+        let g = grippers.len() / frames.max(1);
+        let episode = Episode::new(frames, n, g, positions, grippers)?
+            .with_held(task.start.held().to_vec())?
+            .with_closed(vec![1; frames * g])?;
+        writer.add_episode(&episode, Split::Train)?;
+        added += 1;
+    }
+    writer.finish()?;
+    Ok(added)
+}
+
 /// Particles per frame of the run's dataset, when it can be opened.
 fn dataset_particles(dir: &str) -> Option<usize> {
     let data = dataset::Dataset::open(dir).ok()?;
@@ -522,4 +597,107 @@ fn write_gif(path: &Path, task: &Task, traj: &Trajectory) -> anyhow::Result<()> 
         }
     }
     dataset::write_atomic(path, &bytes).with_context(|| format!("writing {}", path.display()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn plan_args(task: &str, record: PathBuf) -> PlanArgs {
+        PlanArgs {
+            task: task.into(),
+            run: std::env::temp_dir().join("pgrd-plan-no-such-run"),
+            model: vec![ModelArg::SpringMass],
+            trials: 1,
+            json: std::env::temp_dir().join("pgrd-plan-unused.json"),
+            plot: None,
+            gif: None,
+            seed: 0,
+            tracked: None,
+            resolution: ResolutionArg::Coarse,
+            max_steps: None,
+            full_length: false,
+            compare: Vec::new(),
+            record: Some(record),
+        }
+    }
+
+    /// A path of `steps` gripper moves on the lift task's rope, as a closed loop records it.
+    fn lifted_path(task: &Task, steps: usize) -> Trajectory {
+        let mut world = task.start.clone();
+        let mut traj = Trajectory {
+            observed: vec![world.observe()],
+            grippers: vec![vec![world.gripper()]],
+            chamfer_m: Vec::new(),
+            replans: Vec::new(),
+            done: false,
+            stopped: None,
+        };
+        for _ in 0..steps {
+            let to = world.gripper() + Vec3::new(0.0, 0.0, 0.02);
+            world.step(to).unwrap();
+            traj.observed.push(world.observe());
+            traj.grippers.push(vec![world.gripper()]);
+        }
+        traj
+    }
+
+    #[test]
+    fn recorded_paths_become_training_episodes_of_a_new_or_existing_dataset() {
+        let dir = std::env::temp_dir().join(format!("pgrd-plan-record-{}", std::process::id()));
+        std::fs::remove_dir_all(&dir).ok();
+        let cfg = TaskConfig {
+            tracked: 30,
+            ..TaskConfig::new()
+        };
+        let task = Task::build(TaskKind::RopeLift, &cfg).unwrap();
+        let paths = [lifted_path(&task, 2), lifted_path(&task, 3)];
+        let tasks = [task.clone(), task.clone()];
+        // Created from the run's dataset's metadata (the fixture's gripper radius) ...
+        let fixture = crate::cmd_fit::FIXTURE_ROPE;
+        assert_eq!(record_paths(&dir, fixture, &tasks, &paths).unwrap(), 2);
+        // ... then appended to.
+        assert_eq!(
+            record_paths(&dir, fixture, &tasks[..1], &paths[..1]).unwrap(),
+            1
+        );
+        let data = dataset::Dataset::open(&dir).unwrap();
+        let fixture_meta = dataset::Dataset::open(fixture).unwrap().meta;
+        assert_eq!(data.meta.gripper_radius, fixture_meta.gripper_radius);
+        assert_eq!(data.split_indices(dataset::Split::Train), vec![0, 1, 2]);
+        let ep = data.load_episode(1).unwrap();
+        assert_eq!((ep.frames(), ep.particles(), ep.grippers()), (4, 30, 1));
+        assert_eq!(data.held(&ep), task.start.held());
+        assert!(data.held(&ep).contains(&0));
+        let last = &paths[1].observed[3];
+        assert_eq!(ep.positions()[3 * 30..].to_vec(), *last);
+        // A rope of another size does not join these episodes.
+        let other = Task::build(
+            TaskKind::RopeLift,
+            &TaskConfig {
+                tracked: 20,
+                ..TaskConfig::new()
+            },
+        )
+        .unwrap();
+        let err = record_paths(
+            &dir,
+            fixture,
+            std::slice::from_ref(&other),
+            &[lifted_path(&other, 1)],
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(err.contains("30 particles") && err.contains("20"), "{err}");
+        assert_eq!(dataset::Dataset::open(&dir).unwrap().meta.episodes.len(), 3);
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
+    #[test]
+    fn rerouting_is_not_recorded() {
+        let args = plan_args("reroute", std::env::temp_dir().join("pgrd-plan-never"));
+        let err = run(&args).unwrap_err().to_string();
+        assert!(err.contains("no obstacles"), "{err}");
+        assert!(!std::env::temp_dir().join("pgrd-plan-never").exists());
+    }
 }

@@ -238,10 +238,35 @@ impl DatasetWriter {
         Ok(DatasetWriter { root, meta })
     }
 
-    /// Writes `episode` as `ep_NNNN.safetensors` in `split`; returns its index.
+    /// Opens the existing dataset at `dir` to add episodes after its own; its index is
+    /// rewritten only on [`DatasetWriter::finish`], so until then readers see the old one.
+    pub fn append(dir: impl AsRef<Path>) -> Result<Self> {
+        let data = Dataset::open(dir)?;
+        Ok(DatasetWriter {
+            root: data.root,
+            meta: data.meta,
+        })
+    }
+
+    /// The metadata so far (the episodes added, or kept by [`DatasetWriter::append`]).
+    pub fn meta(&self) -> &DatasetMeta {
+        &self.meta
+    }
+
+    /// Writes `episode` as `ep_NNNN.safetensors` in `split` (NNNN its index, or the next
+    /// number whose file name the index does not list yet); returns its index.
     pub fn add_episode(&mut self, episode: &Episode, split: Split) -> Result<usize> {
         let index = self.meta.episodes.len();
-        let file = format!("ep_{index:04}.safetensors");
+        // An appended dataset may name its files otherwise (an importer's names); never let a
+        // new file replace a listed one.
+        let mut k = index;
+        let file = loop {
+            let f = format!("ep_{k:04}.safetensors");
+            if self.meta.episodes.iter().all(|e| e.file != f) {
+                break f;
+            }
+            k += 1;
+        };
         episode.write(&self.root.join(&file))?;
         self.meta.episodes.push(EpisodeEntry { file, split });
         Ok(index)

@@ -68,6 +68,46 @@ fn dataset_round_trip_and_splits() {
 }
 
 #[test]
+fn append_keeps_the_old_episodes_and_never_reuses_a_listed_name() {
+    let dir = tmpdir("append");
+    let mut meta = DatasetMeta::new("rope", 10.0, Manipulation::Grasp);
+    meta.gripper_radius = 0.03;
+    let mut w = DatasetWriter::create(&dir, meta).unwrap();
+    w.add_episode(&small_episode(3, 4, 1, 0.0), Split::Train)
+        .unwrap();
+    w.add_episode(&small_episode(3, 4, 1, 1.0), Split::Val)
+        .unwrap();
+    w.finish().unwrap();
+    // An importer may have named its files otherwise: "ep_0002" already taken by episode 1.
+    let index = dir.join("dataset.json");
+    let text = std::fs::read_to_string(&index).unwrap();
+    std::fs::rename(
+        dir.join("ep_0001.safetensors"),
+        dir.join("ep_0002.safetensors"),
+    )
+    .unwrap();
+    std::fs::write(&index, text.replace("ep_0001", "ep_0002")).unwrap();
+
+    let mut w = DatasetWriter::append(&dir).unwrap();
+    assert_eq!(w.meta().gripper_radius, 0.03);
+    assert_eq!(
+        w.add_episode(&small_episode(5, 4, 1, 2.0), Split::Train)
+            .unwrap(),
+        2
+    );
+    // Until finish, readers see the old index.
+    assert_eq!(Dataset::open(&dir).unwrap().meta.episodes.len(), 2);
+    w.finish().unwrap();
+    let d = Dataset::open(&dir).unwrap();
+    assert_eq!(d.split_indices(Split::Train), vec![0, 2]);
+    assert_eq!(d.load_episode(0).unwrap(), small_episode(3, 4, 1, 0.0));
+    assert_eq!(d.load_episode(1).unwrap(), small_episode(3, 4, 1, 1.0));
+    assert_eq!(d.load_episode(2).unwrap(), small_episode(5, 4, 1, 2.0));
+    assert_eq!(d.meta.episodes[2].file, "ep_0003.safetensors");
+    assert!(DatasetWriter::append(dir.join("missing")).is_err());
+}
+
+#[test]
 fn default_held_uses_gripper_radius_at_frame_zero() {
     let pos = vec![
         Vec3::ZERO,
