@@ -6,7 +6,8 @@
 //!
 //! - [`Dataset::open`] reads and validates `dataset.json`; [`Dataset::load_episode`] reads one
 //!   episode and validates shapes, finiteness and index ranges. Every error names the file.
-//! - [`DatasetWriter`] writes episodes and the index atomically (temporary file, then rename).
+//! - [`DatasetWriter`] writes episodes and the index atomically (temporary file, then rename),
+//!   into a new dataset or after an existing one's episodes ([`DatasetWriter::append`]).
 //! - [`import`] converts other formats (the DEFORM cable pickles) into this one.
 //! - [`carried_frame`] reads a frame with each occluded point carried from its last sighting
 //!   (a tracker's stored position for a lost point is stale); [`MaterialNeighbours`] places the
