@@ -549,6 +549,16 @@ fn record_paths(
         added += 1;
     }
     writer.finish()?;
+    let short = trajectories
+        .iter()
+        .filter(|t| scene::Protocol::Paper.window(t.observed.len()).is_err())
+        .count();
+    if short > 0 {
+        eprintln!(
+            "note: {short} of these paths have fewer frames than the paper protocol's scenes need \
+             (40), so `train` and `fit` refuse them; record with --full-length --max-steps 39"
+        );
+    }
     Ok(added)
 }
 
