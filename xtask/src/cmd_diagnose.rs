@@ -64,6 +64,11 @@ pub struct DiagnoseArgs {
     /// (`docs/gap.md`, "Racing the refits"). Default: off, unless `--budget-min` chooses it.
     #[arg(long)]
     pub race: Option<usize>,
+    /// The probe's refit runs this many times `--generations` (1: as every other refit). The
+    /// probe searches eight parameters; a longer refit finds strong fields a short one
+    /// misses (`docs/gap.md`, "A longer refit for the probe").
+    #[arg(long)]
+    pub probe_factor: Option<usize>,
     /// Time budget, minutes on the reference 2-core host of `gap::SECONDS_PER_WORK` (0:
     /// none). When the diagnosis's estimated time (`gap::effort`: simulator work counted
     /// before the run, no clock, so the choice is the same on every run) times
@@ -165,6 +170,9 @@ fn config_from(args: &DiagnoseArgs, run_effects: &[BaseEffect]) -> anyhow::Resul
         rescore: args.rescore,
         rescore_scenes: args.rescore_scenes.unwrap_or(DEFAULT_REFITS.rescore_scenes),
         race: args.race.unwrap_or(0),
+        probe_factor: args
+            .probe_factor
+            .unwrap_or(DiagnoseConfig::default().probe_factor),
         candidates,
         base: match &args.with {
             Some(list) => BaseEffect::parse_list(list)?,
@@ -389,6 +397,7 @@ struct Level {
     refits: Refits,
     race: usize,
     substep: SubstepArg,
+    probe_factor: usize,
     effort: gap::Effort,
 }
 
@@ -405,6 +414,9 @@ impl Level {
         if self.race != given.race {
             out.push(format!("--race {}", self.race));
         }
+        if self.probe_factor != given.probe_factor {
+            out.push(format!("--probe-factor {}", self.probe_factor));
+        }
         if self.substep != given.substep {
             out.push(format!("--substep {}", self.substep.name()));
         }
@@ -415,6 +427,8 @@ impl Level {
 /// The options as given first, then each level adding one more of what the user left open, in
 /// the order of their measured cost in verdicts (`docs/gap.md`, "Time budget"): the race
 /// (when neither `--race` nor `--substep` was given; it changed 2 of 106 bench verdicts), the
+/// probe at the other refits' length (when `--probe-factor` was not given and the default's
+/// is above 1; it costs `unknown` verdicts, `docs/gap.md`, "A longer refit for the probe"), the
 /// bench's default refit size (when none of `--generations`, `--samples`, `--rescore-scenes`
 /// was given; fewer generations cost bench verdicts), the spectral substep (with the race,
 /// when the run's rule is `auto`; it cost verdicts on two of three bench seeds), then, when the
@@ -428,42 +442,49 @@ fn effort_levels(
     params: &springs::SpringParams,
     config: &DiagnoseConfig,
 ) -> anyhow::Result<Vec<Level>> {
-    let (mut refits, mut race, mut substep) = (
+    let (mut refits, mut race, mut substep, mut probe) = (
         Refits::of(config),
         config.race,
         args.substep.unwrap_or(run_substep),
+        config.probe_factor,
     );
-    let mut options = vec![(refits, race, substep)];
+    let mut options = vec![(refits, race, substep, probe)];
     let speed_open = args.race.is_none() && args.substep.is_none();
     let refits_open =
         args.generations.is_none() && args.samples.is_none() && args.rescore_scenes.is_none();
     if speed_open {
         race = BUDGET_RACE;
-        options.push((refits, race, substep));
+        options.push((refits, race, substep, probe));
+    }
+    if args.probe_factor.is_none() && config.probe && probe > 1 {
+        probe = 1;
+        options.push((refits, race, substep, probe));
     }
     if refits_open && refits != BENCH_REFITS {
         refits = BENCH_REFITS;
-        options.push((refits, race, substep));
+        options.push((refits, race, substep, probe));
     }
     if speed_open && run_substep == SubstepArg::Auto {
         substep = SubstepArg::Spectral;
-        options.push((refits, race, substep));
+        options.push((refits, race, substep, probe));
     }
     if refits_open && refits.samples > FEWER_SAMPLES.samples {
         refits = FEWER_SAMPLES;
-        options.push((refits, race, substep));
+        options.push((refits, race, substep, probe));
     }
     options
         .into_iter()
-        .map(|(refits, race, substep)| {
+        .map(|(refits, race, substep, probe_factor)| {
             let cfg = DiagnoseConfig {
                 race,
+                probe_factor,
                 ..refits.apply(config)
             };
             Ok(Level {
                 refits,
                 race,
                 substep,
+                probe_factor,
                 effort: gap::effort(train, val, params, &cfg, substep.substep())?,
             })
         })
@@ -635,6 +656,7 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
         }
         config = DiagnoseConfig {
             race: chosen.race,
+            probe_factor: chosen.probe_factor,
             ..chosen.refits.apply(&config)
         };
         if chosen.substep != substep {
@@ -760,6 +782,7 @@ mod tests {
             refits: DEFAULT_REFITS,
             race,
             substep,
+            probe_factor: 1,
             effort: gap::Effort {
                 refit_rollouts: 1000,
                 heldout_rollouts: 0,
@@ -824,6 +847,18 @@ mod tests {
         assert_eq!(
             smaller.options(&levels[0]),
             "--generations 8 --samples 6 --rescore-scenes 16 --race 3 --substep spectral"
+        );
+        let short_probe = Level {
+            probe_factor: 1,
+            ..level(3, SubstepArg::Auto, 120.0)
+        };
+        let long_probe = Level {
+            probe_factor: 4,
+            ..level(0, SubstepArg::Auto, 400.0)
+        };
+        assert_eq!(
+            short_probe.options(&long_probe),
+            "--race 3 --probe-factor 1"
         );
     }
 

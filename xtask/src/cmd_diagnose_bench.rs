@@ -170,6 +170,10 @@ pub struct DiagnoseBenchArgs {
     /// base search's diagnoses are not raced.
     #[arg(long, default_value_t = 0)]
     pub race: usize,
+    /// The probe's refit runs this many times `--generations` in every diagnosis, the base
+    /// search's included (`diagnose --probe-factor`; default: `diagnose`'s).
+    #[arg(long, default_value_t = DiagnoseConfig::default().probe_factor)]
+    pub probe_factor: usize,
     /// Training episodes sampled per generation by every case's diagnosis refits (default:
     /// `--samples`); the backbone fit and the base search keep `--samples`, so that benches
     /// that differ only here diagnose their cases against the same base models. Measures what
@@ -460,6 +464,7 @@ fn case_config(base: &[BaseEffect], args: &DiagnoseBenchArgs, case: bool) -> Dia
     DiagnoseConfig {
         race,
         generations: args.generations,
+        probe_factor: args.probe_factor,
         samples,
         seed: args.seed,
         rescore: args.rescore,
@@ -1173,7 +1178,8 @@ mod tests {
 
     #[test]
     fn a_raced_bench_races_the_cases_not_the_base_search_and_flags_raced_out_truths() {
-        // `--case-samples` too reaches the cases' diagnoses only.
+        // `--case-samples` too reaches the cases' diagnoses only; `--probe-factor` every
+        // diagnosis.
         let dir = std::env::temp_dir().join(format!("pgrd-bench-race-{}", std::process::id()));
         let work = dir.display().to_string();
         let args = bench_args(&[
@@ -1199,6 +1205,8 @@ mod tests {
             "1",
             "--case-samples",
             "1",
+            "--probe-factor",
+            "3",
             "--work",
             &work,
         ]);
@@ -1210,11 +1218,13 @@ mod tests {
         let base = read("rope-none/report-base0");
         assert_eq!(base.config.race, 0, "the base search is not raced");
         assert_eq!(base.config.samples, 2, "the base search keeps --samples");
+        assert_eq!(base.config.probe_factor, 3, "and the probe's length");
         assert_eq!(summary.cases.len(), 2);
         for case in &summary.cases {
             let d = read(&format!("rope-{}-x1/report", case.truth));
             assert_eq!(d.config.race, 1);
             assert_eq!(d.config.samples, 1);
+            assert_eq!(d.config.probe_generations(), 6);
             let raced = d.ranking.iter().filter(|r| r.raced_out).count();
             assert_eq!(raced, d.ranking.len() - 1, "all but one raced out");
             let truth = d.ranking.iter().find(|r| r.effect == case.truth).unwrap();

@@ -74,6 +74,21 @@ pub struct DiagnoseConfig {
     /// existed): no race.
     #[serde(default, skip_serializing_if = "is_zero")]
     pub race: usize,
+    /// The probe's refit runs this many times [`DiagnoseConfig::generations`] (1: as every
+    /// other refit; 0, in reports written before the field existed, reads as 1). The probe
+    /// searches eight parameters where a library candidate searches one or two, and a short
+    /// refit of it can miss a strong field (`docs/gap.md`, "A longer refit for the probe").
+    /// With a race the probe's two starts still race over half of `generations`; the kept
+    /// one then runs to [`DiagnoseConfig::probe_generations`].
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub probe_factor: usize,
+}
+
+impl DiagnoseConfig {
+    /// Generations of the probe's refit: `generations × probe_factor`.
+    pub fn probe_generations(&self) -> usize {
+        self.generations * self.probe_factor.max(1)
+    }
 }
 
 fn is_zero(v: &usize) -> bool {
@@ -108,6 +123,7 @@ impl Default for DiagnoseConfig {
             rescore_scenes: 64,
             field: None,
             race: 0,
+            probe_factor: 1,
         }
     }
 }
@@ -602,10 +618,19 @@ pub fn diagnose(
             )
         };
     let family_of = |cand: Option<Candidate>| family_in(cand, &frame);
+    let probe_fit_cfg = FitConfig {
+        generations: config.probe_generations(),
+        ..fit_cfg.clone()
+    };
     let refit_in = |cand: Option<Candidate>, frame: &MaterialFrame| -> Result<Model, GapError> {
         let t = Instant::now();
         let family = family_in(cand, frame)?;
-        let out = fit::fit(train, &family, &fit_cfg, None, &mut |_| {})?;
+        let cfg = if cand == Some(Candidate::ExternalField) {
+            &probe_fit_cfg
+        } else {
+            &fit_cfg
+        };
+        let out = fit::fit(train, &family, cfg, None, &mut |_| {})?;
         Ok(Model {
             family,
             real: out.best,
@@ -680,7 +705,7 @@ pub fn diagnose(
                 progress(&format!(
                     "probe's starts raced: training loss after {} of {} generations {focus_loss:.3e} from the focus, {broad_loss:.3e} broad; finished the {} one",
                     config.generations.div_ceil(2),
-                    config.generations,
+                    config.probe_generations(),
                     if from_focus { "focus" } else { "broad" }
                 ));
                 probe_start = Some(ProbeStart {

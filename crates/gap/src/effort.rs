@@ -104,17 +104,20 @@ pub fn effort(
     // A generation scores every candidate on `samples` training scenes, all of them when
     // there are fewer.
     let generation = config.population * config.samples.min(n).max(1);
-    let rescoring = if config.rescore > 0 {
-        let scenes = if config.rescore_scenes == 0 {
-            n
+    // The optimiser's mean and the best of up to `rescore` generations of `generations`.
+    let rescoring_of = |generations: usize| {
+        if config.rescore > 0 {
+            let scenes = if config.rescore_scenes == 0 {
+                n
+            } else {
+                config.rescore_scenes.min(n)
+            };
+            (config.rescore.min(generations) + 1) * scenes
         } else {
-            config.rescore_scenes.min(n)
-        };
-        // The optimiser's mean and the best of up to `rescore` generations.
-        (config.rescore.min(config.generations) + 1) * scenes
-    } else {
-        0
+            0
+        }
     };
+    let rescoring = rescoring_of(config.generations);
     let whole = config.generations * generation + rescoring;
     let library = config
         .candidates
@@ -128,10 +131,16 @@ pub fn effort(
     let second_half = (config.generations - half) * generation + rescoring;
     // The probe is refitted from two starts (the residuals' focus and its broad start); with a
     // race the two are raced and one is finished.
+    // Its refits may run longer than the others ([`DiagnoseConfig::probe_factor`]).
+    let probe_generations = config.probe_generations();
+    let probe_rescoring = rescoring_of(probe_generations);
+    let probe_whole = probe_generations * generation + probe_rescoring;
     let probe = match (config.probe, config.race > 0) {
         (false, _) => 0,
-        (true, false) => 2 * whole,
-        (true, true) => 2 * raced_half + second_half,
+        (true, false) => 2 * probe_whole,
+        (true, true) => {
+            2 * raced_half + probe_generations.saturating_sub(half) * generation + probe_rescoring
+        }
     };
     let library_refits = if config.race > 0 && config.race < library {
         library * raced_half + config.race * second_half

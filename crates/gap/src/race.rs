@@ -26,14 +26,16 @@ fn first_half(
     Ok((run, look))
 }
 
-/// A kept refit's second half and final rescoring: bit for bit the unraced refit.
+/// A kept refit's second half (up to `generations` in all) and final rescoring: bit for bit
+/// the unraced refit of that many generations.
 fn second_half(
     train: &[Scene],
     family: &CandidateFamily,
     mut run: fit::PausedFit,
     config: &DiagnoseConfig,
+    generations: usize,
 ) -> Result<fit::FitOutcome, GapError> {
-    run.advance(train, family, config.generations)?;
+    run.advance(train, family, generations)?;
     Ok(run.finish(train, family, config.rescore, config.rescore_scenes)?)
 }
 
@@ -88,7 +90,7 @@ pub(crate) fn race(
     for (i, (k, family, run, look, wall)) in runs.into_iter().enumerate() {
         let model = if kept.contains(&i) {
             let t = Instant::now();
-            let done = second_half(train, &family, run, config)?;
+            let done = second_half(train, &family, run, config, config.generations)?;
             Model {
                 family,
                 real: done.best,
@@ -112,7 +114,8 @@ pub(crate) fn race(
 
 /// The probe's two starts raced ([`DiagnoseConfig::race`] > 0): both refits (`families`, the
 /// one started at the residuals' focus first, then the broad one) run half the generations,
-/// and only the one with the lower training loss on [`RACE_SCENES`] scenes then is finished.
+/// and only the one with the lower training loss on [`RACE_SCENES`] scenes then is finished
+/// (to [`DiagnoseConfig::probe_generations`] in all).
 /// Returns the finished refit, both halfway losses (focus, broad; m²) and whether the focus
 /// start won (ties go to the broad start, as between finished refits).
 pub(crate) fn race_probe_starts(
@@ -136,7 +139,7 @@ pub(crate) fn race_probe_starts(
     } else {
         (broad_family, runs.swap_remove(1))
     };
-    let done = second_half(train, &family, run, config)?;
+    let done = second_half(train, &family, run, config, config.probe_generations())?;
     let model = Model {
         family,
         real: done.best,

@@ -67,6 +67,36 @@ fn rollouts_are_counted_as_the_diagnosis_runs_them() {
             .refit_rollouts,
         refit + 2 * first_half + second_half + 3 * refit
     );
+    // A longer probe: its two refits (or, raced, its kept start's second half) run to twice
+    // the generations; nothing else changes.
+    let long = DiagnoseConfig {
+        probe_factor: 2,
+        ..small()
+    };
+    let probe_refit = 6 * 3 + 2 * n;
+    assert_eq!(
+        gap::effort(&train, &val, &backbone(), &long, auto)
+            .unwrap()
+            .refit_rollouts,
+        4 * refit + 2 * probe_refit
+    );
+    let long_raced = DiagnoseConfig {
+        race: 1,
+        ..long.clone()
+    };
+    assert_eq!(
+        gap::effort(&train, &val, &backbone(), &long_raced, auto)
+            .unwrap()
+            .refit_rollouts,
+        refit + 2 * first_half + (4 * 3 + 2 * n) + 3 * first_half + second_half
+    );
+    assert_eq!(long.probe_generations(), 6);
+    // 0 (reports written before the factor existed) means "as every refit".
+    let old = DiagnoseConfig {
+        probe_factor: 0,
+        ..small()
+    };
+    assert_eq!(old.probe_generations(), 3);
     // A base effect is part of the model, not a candidate: one refit fewer.
     let based = DiagnoseConfig {
         base: BaseEffect::parse_list("bending").unwrap(),
