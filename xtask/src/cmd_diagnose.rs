@@ -876,7 +876,7 @@ mod tests {
         crate::cmd_fit::run(&fit).unwrap();
         // The ladder a budget climbs: the bench's refit size, and last its fewer samples, only
         // when the user left all three of their flags open, the race and the spectral substep
-        // only when both of theirs are.
+        // only when both of theirs are, the probe's usual length when its factor is open.
         let ladder = |extra: &[&str]| -> Vec<(String, f64)> {
             let run = dir.join("run");
             let run = run.to_str().unwrap();
@@ -896,19 +896,28 @@ mod tests {
             [
                 "",
                 "--race 3",
-                "--generations 8 --samples 6 --rescore-scenes 16 --race 3",
-                "--generations 8 --samples 6 --rescore-scenes 16 --race 3 --substep spectral",
-                "--generations 8 --samples 4 --rescore-scenes 16 --race 3 --substep spectral",
+                "--race 3 --probe-factor 1",
+                "--generations 8 --samples 6 --rescore-scenes 16 --race 3 --probe-factor 1",
+                "--generations 8 --samples 6 --rescore-scenes 16 --race 3 --probe-factor 1 --substep spectral",
+                "--generations 8 --samples 4 --rescore-scenes 16 --race 3 --probe-factor 1 --substep spectral",
             ]
         );
-        assert!(open[2].1 < open[1].1, "{open:?}");
+        assert!(open[2].1 < open[1].1 && open[3].1 < open[2].1, "{open:?}");
         // The fixture's three training episodes are fewer than either sample size, so the
         // last rung saves nothing here (the choice then keeps the earlier level of equals).
-        assert!(open[4].1 <= open[3].1, "{open:?}");
+        assert!(open[5].1 <= open[4].1, "{open:?}");
         let sized = ladder(&["--samples", "8"]);
         let names: Vec<&str> = sized.iter().map(|(o, _)| o.as_str()).collect();
-        assert_eq!(names, ["", "--race 3", "--race 3 --substep spectral"]);
-        let raced = ladder(&["--race", "2"]);
+        assert_eq!(
+            names,
+            [
+                "",
+                "--race 3",
+                "--race 3 --probe-factor 1",
+                "--race 3 --probe-factor 1 --substep spectral"
+            ]
+        );
+        let raced = ladder(&["--race", "2", "--probe-factor", "4"]);
         let names: Vec<&str> = raced.iter().map(|(o, _)| o.as_str()).collect();
         assert_eq!(
             names,
@@ -918,7 +927,11 @@ mod tests {
                 "--generations 8 --samples 4 --rescore-scenes 16",
             ]
         );
-        assert_eq!(ladder(&["--race", "2", "--generations", "10"]).len(), 1);
+        assert_eq!(ladder(&["--race", "2", "--generations", "10"]).len(), 2);
+        assert_eq!(
+            ladder(&["--race", "2", "--generations", "10", "--probe-factor", "4"]).len(),
+            1
+        );
         let diagnose = |out: &str, extra: &[&str]| -> Diagnosis {
             let out = dir.join(out);
             let mut argv: Vec<String> = [
@@ -960,9 +973,10 @@ mod tests {
             .budget
             .as_ref()
             .expect("the budget's choice is recorded");
-        assert_eq!(b.options, "--race 3");
+        assert_eq!(b.options, "--race 3 --probe-factor 1");
         assert!(b.estimated_s < b.full_estimated_s, "{b:?}");
         assert_eq!(tight.config.race, 3);
+        assert_eq!(tight.config.probe_factor, 1);
         assert_eq!(tight.substep, Some(springs::Substep::AUTO));
         assert_eq!(tight.ranking.iter().filter(|r| r.raced_out).count(), 3);
         // At the stiffness bound the spectral substep is the cheaper rule: the scenes are
@@ -988,19 +1002,23 @@ mod tests {
         );
         assert_eq!(
             stiff.budget.as_ref().unwrap().options,
-            "--race 3 --substep spectral"
+            "--race 3 --probe-factor 1 --substep spectral"
         );
         assert_eq!(stiff.substep, Some(springs::Substep::SPECTRAL));
         let page = std::fs::read_to_string(dir.join("stiff").join("report.html")).unwrap();
-        assert!(page.contains("<code>--race 3 --substep spectral</code>"));
+        assert!(page.contains("<code>--race 3 --probe-factor 1 --substep spectral</code>"));
         // The margin is recorded and named on the page.
         assert_eq!(stiff.budget.as_ref().unwrap().margin, gap::ESTIMATE_MARGIN);
         assert!(page.contains(&format!("counted {:.2} times", gap::ESTIMATE_MARGIN)));
         assert_eq!(stiff.config.race, 3);
         // Options given on the command line are not overruled, and nothing is recorded.
-        let given = diagnose("given", &["--budget-min", "1e-9", "--race", "0"]);
+        let given = diagnose(
+            "given",
+            &["--budget-min", "1e-9", "--race", "0", "--probe-factor", "4"],
+        );
         assert!(given.budget.is_none());
         assert_eq!(given.config.race, 0);
+        assert_eq!(given.config.probe_factor, 4);
         assert_eq!(given.substep, Some(springs::Substep::AUTO));
         // The fixture is far within the default budget: the whole diagnosis, the check recorded.
         let roomy = diagnose("roomy", &[]);

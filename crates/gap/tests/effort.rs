@@ -12,6 +12,7 @@ fn small() -> DiagnoseConfig {
         generations: 3,
         samples: 1,
         rescore: 1,
+        probe_factor: 1,
         candidates: vec![
             Candidate::Drag,
             Candidate::ActuationDelay,
