@@ -79,9 +79,8 @@ pub struct DiagnoseConfig {
     /// searches eight parameters where a library candidate searches one or two, and a short
     /// refit of it can miss a strong field. Default 4: on the bench it found three more of
     /// sixteen `unknown` cases and changed no other verdict (`docs/gap.md`, "A longer refit
-    /// for the probe").
-    /// With a race the probe's two starts still race over half of `generations`; the kept
-    /// one then runs to [`DiagnoseConfig::probe_generations`].
+    /// for the probe"). With a race the probe's two starts still race over half of
+    /// `generations`; the kept one then runs to [`DiagnoseConfig::probe_generations`].
     #[serde(default, skip_serializing_if = "is_zero")]
     pub probe_factor: usize,
 }

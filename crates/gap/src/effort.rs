@@ -130,8 +130,8 @@ pub fn effort(
     let raced_half = half * generation + 2 * RACE_SCENES.min(n);
     let second_half = (config.generations - half) * generation + rescoring;
     // The probe is refitted from two starts (the residuals' focus and its broad start); with a
-    // race the two are raced and one is finished.
-    // Its refits may run longer than the others ([`DiagnoseConfig::probe_factor`]).
+    // race the two are raced and one is finished, to a multiple of the library's generations
+    // ([`DiagnoseConfig::probe_factor`]).
     let probe_generations = config.probe_generations();
     let probe_rescoring = rescoring_of(probe_generations);
     let probe_whole = probe_generations * generation + probe_rescoring;
