@@ -54,7 +54,8 @@ pub enum CasePlan {
 /// used it: friction needs an object that slides on the table (not the hanging paper, flag or
 /// duster), grasp slip a grasped one (not the pushed teddy), drag a light object with a large
 /// area, heterogeneity and mass distribution an object with parts, plasticity one that is bent
-/// and released. Every effect has at least three objects.
+/// and released. Every effect has at least three objects. The fan (session 57) is on every
+/// object's list: its jet crosses the workspace where each object moves.
 pub fn relevant_cases(object: ObjectKind) -> &'static [&'static str] {
     match object {
         ObjectKind::Rope => &[
@@ -65,6 +66,7 @@ pub fn relevant_cases(object: ObjectKind) -> &'static [&'static str] {
             "grasp-slip",
             "magnet",
             "rotating-frame",
+            "fan",
         ],
         ObjectKind::Paper => &[
             "drag",
@@ -74,12 +76,14 @@ pub fn relevant_cases(object: ObjectKind) -> &'static [&'static str] {
             "grasp-slip",
             "magnet",
             "rotating-frame",
+            "fan",
         ],
         ObjectKind::Flag => &[
             "drag",
             "nonlinear-elasticity",
             "actuation-delay",
             "rotating-frame",
+            "fan",
         ],
         ObjectKind::Sloth => &[
             "stiffness-heterogeneity",
@@ -90,6 +94,7 @@ pub fn relevant_cases(object: ObjectKind) -> &'static [&'static str] {
             "mass-distribution",
             "magnet",
             "rotating-frame",
+            "fan",
         ],
         ObjectKind::Duster => &[
             "drag",
@@ -97,6 +102,7 @@ pub fn relevant_cases(object: ObjectKind) -> &'static [&'static str] {
             "bending",
             "mass-distribution",
             "rotating-frame",
+            "fan",
         ],
         ObjectKind::Teddy => &[
             "stiffness-heterogeneity",
@@ -104,6 +110,7 @@ pub fn relevant_cases(object: ObjectKind) -> &'static [&'static str] {
             "friction",
             "mass-distribution",
             "rotating-frame",
+            "fan",
         ],
     }
 }
@@ -118,8 +125,8 @@ pub struct DiagnoseBenchArgs {
     /// Objects to generate (comma-separated).
     #[arg(long, default_value = "rope,paper,sloth")]
     pub objects: String,
-    /// Cases: comma-separated world effect names (the out-of-library `magnet` and
-    /// `rotating-frame` included) and `none` (default: all).
+    /// Cases: comma-separated world effect names (the out-of-library `magnet`,
+    /// `rotating-frame` and `fan` included) and `none` (default: all).
     #[arg(long)]
     pub cases: Option<String>,
     /// Which of those cases run on which object: every case on every object, or on each

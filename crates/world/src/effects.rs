@@ -36,11 +36,14 @@ pub enum EffectKind {
     /// The lab turns about a vertical axis and records in its own frame: Coriolis and
     /// centrifugal accelerations (out of the diagnosis library).
     RotatingFrame,
+    /// A fan's round air jet across the workspace, acting through the drag law (out of the
+    /// diagnosis library).
+    Fan,
 }
 
 impl EffectKind {
     /// All effects, the nine library effects first.
-    pub const ALL: [EffectKind; 11] = [
+    pub const ALL: [EffectKind; 12] = [
         EffectKind::Drag,
         EffectKind::StiffnessHeterogeneity,
         EffectKind::NonlinearElasticity,
@@ -52,6 +55,7 @@ impl EffectKind {
         EffectKind::MassDistribution,
         EffectKind::Magnet,
         EffectKind::RotatingFrame,
+        EffectKind::Fan,
     ];
 
     /// The effect's name.
@@ -68,13 +72,17 @@ impl EffectKind {
             EffectKind::MassDistribution => "mass-distribution",
             EffectKind::Magnet => "magnet",
             EffectKind::RotatingFrame => "rotating-frame",
+            EffectKind::Fan => "fan",
         }
     }
 
-    /// Whether the effect belongs to the diagnosis library (all but [`EffectKind::Magnet`] and
-    /// [`EffectKind::RotatingFrame`]).
+    /// Whether the effect belongs to the diagnosis library (all but [`EffectKind::Magnet`],
+    /// [`EffectKind::RotatingFrame`] and [`EffectKind::Fan`]).
     pub fn in_library(self) -> bool {
-        !matches!(self, EffectKind::Magnet | EffectKind::RotatingFrame)
+        !matches!(
+            self,
+            EffectKind::Magnet | EffectKind::RotatingFrame | EffectKind::Fan
+        )
     }
 }
 
@@ -235,6 +243,59 @@ pub struct RotatingFrame {
     pub axis_m: [f32; 2],
 }
 
+/// Out of the diagnosis library: a fan's round air jet blowing across the workspace. The
+/// jet's air velocity at a point a distance `s` downstream of the nozzle (along `d`) and `r`
+/// off its axis is `U(s) d exp(−r² / 2R(s)²)`, with the free jet's linear spread
+/// `R(s) = R0 + spread · s` and `U(s) = U0 R0 / R(s)` (a round jet's axial momentum kept);
+/// nothing upstream of the nozzle. It acts through the world's drag law with the object's
+/// drag coefficients ([`Drag`]), as the jet's contribution alone: `F_drag(v − w) − F_drag(v)`,
+/// zero outside the jet, so still-air drag stays the `drag` effect's. Added in session 57,
+/// its form and parameters written down before any diagnosis of it ran, as a test of
+/// `unknown` that did not shape the diagnosis' probe (the magnet and the rotating frame did).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Fan {
+    /// Nozzle position p, m.
+    pub nozzle_m: [f32; 3],
+    /// Jet direction d (unit length).
+    pub direction: [f32; 3],
+    /// Air speed on the axis at the nozzle U0, m/s.
+    pub speed_m_s: f32,
+    /// Jet radius at the nozzle R0, m.
+    pub radius_m: f32,
+    /// Growth of the radius per metre downstream (about 0.1 for a free round jet).
+    pub spread: f32,
+    /// The air the jet drags the object with (density, coefficients; its wind is unused).
+    pub air: Drag,
+}
+
+impl Fan {
+    /// The jet's air velocity at `x` (m), m/s.
+    pub fn wind_at(&self, x: [f32; 3]) -> [f32; 3] {
+        let d = self.direction;
+        let rel = [
+            x[0] - self.nozzle_m[0],
+            x[1] - self.nozzle_m[1],
+            x[2] - self.nozzle_m[2],
+        ];
+        let s = rel[0] * d[0] + rel[1] * d[1] + rel[2] * d[2];
+        if s <= 0.0 {
+            return [0.0; 3];
+        }
+        let off = [rel[0] - s * d[0], rel[1] - s * d[1], rel[2] - s * d[2]];
+        let r2 = off[0] * off[0] + off[1] * off[1] + off[2] * off[2];
+        let radius = self.radius_m + self.spread * s;
+        let speed = self.speed_m_s * self.radius_m / radius * (-r2 / (2.0 * radius * radius)).exp();
+        d.map(|c| c * speed)
+    }
+}
+
+/// The fan's default air speed at the nozzle, m/s (a desk fan at its highest setting).
+const DEFAULT_FAN_SPEED_M_S: f32 = 4.0;
+
+/// The fastest jet the world accepts, m/s.
+const MAX_FAN_SPEED_M_S: f32 = 30.0;
+
 /// The frame's default rate, rad/s (about 14 turns a minute: a slow turntable).
 const DEFAULT_FRAME_RATE_RAD_S: f32 = 1.5;
 
@@ -283,6 +344,9 @@ pub struct Effects {
     /// See [`RotatingFrame`].
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub rotating_frame: Option<RotatingFrame>,
+    /// See [`Fan`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub fan: Option<Fan>,
 }
 
 /// The effects each object has on by default, and why (see `docs/world.md`).
@@ -336,8 +400,8 @@ impl Effects {
     /// coefficients × s; stiffness and mass contrasts ^ s; stiffening strain ÷ s and
     /// compression ratio ^ s; bending rigidity × s; static-minus-kinetic friction × s; yield
     /// strain and flow time ÷ s; actuation lag × s; grasp stiffness and slip force ÷ s; magnet
-    /// acceleration × s; the frame's rate × √s (its centrifugal acceleration × s). Clamped to
-    /// the world's ranges.
+    /// acceleration × s; the frame's rate × √s (its centrifugal acceleration × s); the fan's
+    /// speed × √s (its force × s). Clamped to the world's ranges.
     pub fn only_scaled(object: ObjectKind, kind: EffectKind, s: f32) -> Self {
         let mut e = Effects::only(object, kind);
         if let Some(d) = &mut e.drag {
@@ -378,6 +442,9 @@ impl Effects {
         if let Some(r) = &mut e.rotating_frame {
             r.angular_velocity_rad_s = (r.angular_velocity_rad_s * s.max(0.0).sqrt())
                 .clamp(-MAX_FRAME_RATE_RAD_S, MAX_FRAME_RATE_RAD_S);
+        }
+        if let Some(f) = &mut e.fan {
+            f.speed_m_s = (f.speed_m_s * s.max(0.0).sqrt()).min(MAX_FAN_SPEED_M_S);
         }
         e
     }
@@ -534,6 +601,27 @@ impl Effects {
                     axis_m: DEFAULT_FRAME_AXIS_M,
                 });
             }
+            EffectKind::Fan => {
+                // Beside the workspace, blowing along +x at the height the object spends
+                // most time at (the magnet centres' heights; the rope's just above the table).
+                let height = match o {
+                    Rope => 0.03,
+                    Paper => 0.3,
+                    Flag => 0.35,
+                    Sloth | Teddy => 0.1,
+                    Duster => 0.4,
+                };
+                let mut air = Effects::only(o, EffectKind::Drag);
+                let air = air.drag.take().expect("drag has defaults for every object");
+                self.fan = Some(Fan {
+                    nozzle_m: [-0.6, 0.0, height],
+                    direction: [1.0, 0.0, 0.0],
+                    speed_m_s: DEFAULT_FAN_SPEED_M_S,
+                    radius_m: 0.08,
+                    spread: 0.1,
+                    air,
+                });
+            }
         }
     }
 
@@ -551,6 +639,7 @@ impl Effects {
             EffectKind::MassDistribution => self.mass_distribution = None,
             EffectKind::Magnet => self.magnet = None,
             EffectKind::RotatingFrame => self.rotating_frame = None,
+            EffectKind::Fan => self.fan = None,
         }
     }
 
@@ -568,6 +657,7 @@ impl Effects {
             EffectKind::MassDistribution => self.mass_distribution.is_some(),
             EffectKind::Magnet => self.magnet.is_some(),
             EffectKind::RotatingFrame => self.rotating_frame.is_some(),
+            EffectKind::Fan => self.fan.is_some(),
         }
     }
 
@@ -711,6 +801,37 @@ impl Effects {
                 "rotating-frame",
                 r.axis_m.iter().all(|c| c.is_finite()),
                 "axis must be finite",
+            )?;
+        }
+        if let Some(f) = &self.fan {
+            let d = f.direction;
+            let norm = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+            check(
+                "fan",
+                f.nozzle_m.iter().all(|c| c.is_finite()),
+                "nozzle must be finite",
+            )?;
+            check(
+                "fan",
+                (norm - 1.0).abs() < 1e-3,
+                "direction must be a unit vector",
+            )?;
+            check(
+                "fan",
+                nonneg(f.speed_m_s) && f.speed_m_s <= MAX_FAN_SPEED_M_S,
+                "speed must be in [0, 30] m/s",
+            )?;
+            check(
+                "fan",
+                pos(f.radius_m) && nonneg(f.spread),
+                "radius must be > 0 m and spread >= 0",
+            )?;
+            check(
+                "fan",
+                pos(f.air.air_density_kg_m3)
+                    && nonneg(f.air.normal_coefficient)
+                    && nonneg(f.air.tangential_coefficient),
+                "air density must be > 0 and drag coefficients >= 0",
             )?;
         }
         Ok(())

@@ -10,7 +10,7 @@ pub enum Error {
     #[error(
         "unknown effect '{0}' (expected 'none', 'default' or a comma-separated list of: drag, \
          stiffness-heterogeneity, nonlinear-elasticity, bending, friction, plasticity, \
-         actuation-delay, grasp-slip, mass-distribution, magnet, rotating-frame)"
+         actuation-delay, grasp-slip, mass-distribution, magnet, rotating-frame, fan)"
     )]
     UnknownEffect(String),
     /// An effect parameter outside its physical range.

@@ -49,7 +49,7 @@ mod truth_gaussians;
 pub use build::Resolution;
 pub use displacement::effect_displacement_m;
 pub use effects::{
-    ActuationDelay, Bending, Drag, EffectKind, Effects, Friction, GraspSlip, Magnet,
+    ActuationDelay, Bending, Drag, EffectKind, Effects, Fan, Friction, GraspSlip, Magnet,
     MassDistribution, NonlinearElasticity, Plasticity, RotatingFrame, StiffnessHeterogeneity,
     default_kinds,
 };

@@ -26,9 +26,10 @@ fn mean_gap(a: &[glam::Vec3], b: &[glam::Vec3]) -> f32 {
 /// Which object shows each effect (friction needs ground contact, grasp slip a heavy held body).
 fn showcase(kind: EffectKind) -> ObjectKind {
     match kind {
-        EffectKind::Drag | EffectKind::ActuationDelay | EffectKind::RotatingFrame => {
-            ObjectKind::Flag
-        }
+        EffectKind::Drag
+        | EffectKind::ActuationDelay
+        | EffectKind::RotatingFrame
+        | EffectKind::Fan => ObjectKind::Flag,
         EffectKind::StiffnessHeterogeneity => ObjectKind::Duster,
         EffectKind::NonlinearElasticity | EffectKind::GraspSlip | EffectKind::MassDistribution => {
             ObjectKind::Sloth
