@@ -65,7 +65,7 @@ pub struct DiagnoseArgs {
     #[arg(long)]
     pub race: Option<usize>,
     /// The probe's refit runs this many times `--generations` (1: as every other refit). The
-    /// probe searches eight parameters; a longer refit finds strong fields a short one
+    /// probe searches eleven parameters; a longer refit finds strong fields a short one
     /// misses (`docs/gap.md`, "A longer refit for the probe").
     #[arg(long)]
     pub probe_factor: Option<usize>,

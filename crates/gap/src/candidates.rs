@@ -53,6 +53,10 @@ pub const PROBE_WINDOW_M: [f64; 2] = [0.05, 5.0];
 /// How far the probe's centre may lie from the training data's mean position, m, per axis.
 const PROBE_OFFSET_M: f64 = 0.5;
 
+/// Bound of each component of the probe's gyroscopic vector b, 1/s (a frame turning at Ω
+/// gives |b| = 2Ω, so up to 10 rad/s).
+pub const PROBE_GYRO: f64 = 20.0;
+
 impl Candidate {
     /// The nine named library effects.
     pub const LIBRARY: [Candidate; 9] = [
@@ -141,6 +145,11 @@ impl Candidate {
                 Parameter::linear("field_centre_dy_m", -PROBE_OFFSET_M, PROBE_OFFSET_M),
                 Parameter::linear("field_centre_dz_m", -PROBE_OFFSET_M, PROBE_OFFSET_M),
                 Parameter::log("field_window_m", PROBE_WINDOW_M[0], PROBE_WINDOW_M[1]),
+                // The workless first-order velocity term v × b (global): a frame turning at
+                // up to 10 rad/s, or any force that deflects motion sideways.
+                Parameter::linear("field_gyro_x_per_s", -PROBE_GYRO, PROBE_GYRO),
+                Parameter::linear("field_gyro_y_per_s", -PROBE_GYRO, PROBE_GYRO),
+                Parameter::linear("field_gyro_z_per_s", -PROBE_GYRO, PROBE_GYRO),
             ],
         }
     }
@@ -159,7 +168,9 @@ impl Candidate {
             Candidate::GraspSlip => vec![1.0, 1.0],
             Candidate::MassDistribution => vec![0.5],
             Candidate::GravityScale => vec![1.2],
-            Candidate::ExternalField => vec![0.5, 0.5, 0.5, -2.0, 0.0, 0.0, 0.0, 1.0],
+            Candidate::ExternalField => {
+                vec![0.5, 0.5, 0.5, -2.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]
+            }
         }
     }
 
@@ -176,7 +187,7 @@ impl Candidate {
                 let radial = if f.attracting { -2.0 } else { 2.0 };
                 let window = f.window_m();
                 let [dx, dy, dz] = d.to_array().map(f64::from);
-                vec![0.0, 0.0, 0.0, radial, dx, dy, dz, window]
+                vec![0.0, 0.0, 0.0, radial, dx, dy, dz, window, 0.0, 0.0, 0.0]
             }
             _ => self.start(),
         }
@@ -193,7 +204,9 @@ impl Candidate {
             Candidate::GravityScale => vec![1.0],
             Candidate::Plasticity => vec![0.02, 0.0],
             Candidate::GraspSlip => vec![1e9, 1e12],
-            Candidate::ExternalField => vec![0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],
+            Candidate::ExternalField => {
+                vec![0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]
+            }
         }
     }
 
@@ -232,6 +245,7 @@ impl Candidate {
                     gradient: f(3) / width,
                     centre: frame.centre + Vec3::new(f(4), f(5), f(6)),
                     width,
+                    gyro: Vec3::new(f(8), f(9), f(10)),
                 })
             }
         }

@@ -76,7 +76,7 @@ pub struct DiagnoseConfig {
     pub race: usize,
     /// The probe's refit runs this many times [`DiagnoseConfig::generations`] (1: as every
     /// other refit; 0, in reports written before the field existed, reads as 1). The probe
-    /// searches eight parameters where a library candidate searches one or two, and a short
+    /// searches eleven parameters where a library candidate searches one or two, and a short
     /// refit of it can miss a strong field. Default 4: on the bench it found three more of
     /// sixteen `unknown` cases and changed no other verdict (`docs/gap.md`, "A longer refit
     /// for the probe"). With a race the probe's two starts still race over half of

@@ -752,8 +752,8 @@ impl Effect for SlippingGrasp {
 }
 
 /// Not a library effect: a generic external acceleration field, first order in position about a
-/// point `c` and confined to a Gaussian window of radius `w` around it,
-/// `a(x) = (a₀ + g (x − c)) exp(−|x − c|² / 2w²)` (m/s²). It probes whether a significant,
+/// point `c` and confined to a Gaussian window of radius `w` around it, plus a workless
+/// velocity term, `a(x, v) = (a₀ + g (x − c)) exp(−|x − c|² / 2w²) + v × b` (m/s²). It probes whether a significant,
 /// learnable gap remains that no named effect explains. A wide window (`w` of metres) makes it
 /// the plain first-order field about `c`; a narrow one, a force confined to one region of the
 /// workspace (an unmodelled support, an air jet, a field source), which a global first-order
@@ -768,6 +768,48 @@ pub struct ExternalField {
     pub centre: Vec3,
     /// Window radius w, m (> 0).
     pub width: f32,
+    /// Gyroscopic vector b, 1/s: an acceleration `v × b` on every particle, not windowed. It
+    /// turns each velocity about `b` without changing its length (no work), the one part of a
+    /// first-order velocity field the backbone's own damping does not already give; a frame
+    /// turning at Ω about an axis ê gives b = 2Ω ê (Coriolis). Zero: a position field alone.
+    pub gyro: Vec3,
+}
+
+/// One substep's turn of the velocity under `dv/dt = v × b`: the unit axis b̂ and the sine
+/// and cosine of the angle |b| dt (`None` when b = 0).
+struct GyroTurn {
+    axis: Vec3A,
+    sin: f32,
+    cos: f32,
+}
+
+impl GyroTurn {
+    fn new(gyro: Vec3, dt: f32) -> Option<Self> {
+        let rate = gyro.length();
+        if rate == 0.0 {
+            return None;
+        }
+        let (sin, cos) = (rate * dt).sin_cos();
+        Some(GyroTurn {
+            axis: Vec3A::from(gyro) / rate,
+            sin,
+            cos,
+        })
+    }
+
+    /// The velocity change `R v − v`, where R turns `v` exactly by |b| dt about −b̂: applied
+    /// as a force it conserves speed however large |b| dt is, where `m v × b` itself would
+    /// add energy each substep.
+    fn change(&self, v: Vec3A) -> Vec3A {
+        let across = v - self.axis * v.dot(self.axis);
+        across * (self.cos - 1.0) + v.cross(self.axis) * self.sin
+    }
+
+    /// The transpose of [`GyroTurn::change`] (a linear map of v) applied to `l`.
+    fn change_transposed(&self, l: Vec3A) -> Vec3A {
+        let across = l - self.axis * l.dot(self.axis);
+        across * (self.cos - 1.0) + self.axis.cross(l) * self.sin
+    }
 }
 
 impl Effect for ExternalField {
@@ -778,7 +820,8 @@ impl Effect for ExternalField {
         let finite = self.uniform.is_finite()
             && self.gradient.is_finite()
             && self.centre.is_finite()
-            && self.width.is_finite();
+            && self.width.is_finite()
+            && self.gyro.is_finite();
         if !finite {
             Err(bad(self.name(), "non-finite field".into()))
         } else if self.width <= 0.0 {
@@ -809,10 +852,20 @@ impl Effect for ExternalField {
         let a0 = Vec3A::from(self.uniform);
         let c = Vec3A::from(self.centre);
         let inv = 1.0 / (2.0 * self.width * self.width);
-        for ((f, x), m) in force.iter_mut().zip(ctx.x).zip(ctx.backbone.masses()) {
+        let turn = GyroTurn::new(self.gyro, ctx.dt);
+        let per_dt = 1.0 / ctx.dt;
+        for (((f, x), v), m) in force
+            .iter_mut()
+            .zip(ctx.x)
+            .zip(ctx.v)
+            .zip(ctx.backbone.masses())
+        {
             let r = *x - c;
             let window = (-r.length_squared() * inv).exp();
             *f += (a0 + r * self.gradient) * (window * *m);
+            if let Some(turn) = &turn {
+                *f += turn.change(*v) * (per_dt * *m);
+            }
         }
     }
     fn adjoint(&self) -> EffectAdjoint {
@@ -823,8 +876,15 @@ impl Effect for ExternalField {
         ctx: &AdjointContext<'_>,
         lambda: &[Vec3A],
         grad_x: &mut [Vec3A],
-        _gv: &mut [Vec3A],
+        grad_v: &mut [Vec3A],
     ) {
+        if let Some(turn) = GyroTurn::new(self.gyro, ctx.dt) {
+            // The turn is linear in v: f = (m/dt) ((cos θ − 1) P⊥ v + sin θ v × b̂), whose
+            // transpose gives λᵀ ∂f/∂v = (m/dt) ((cos θ − 1) P⊥ λ + sin θ b̂ × λ).
+            for ((g, l), m) in grad_v.iter_mut().zip(lambda).zip(ctx.masses) {
+                *g += turn.change_transposed(*l) * (*m / ctx.dt);
+            }
+        }
         let a0 = Vec3A::from(self.uniform);
         let c = Vec3A::from(self.centre);
         let inv = 1.0 / (2.0 * self.width * self.width);

@@ -6,8 +6,9 @@
 //! - [`Candidate`] is the library of nine effects (`drag`, `stiffness-heterogeneity`,
 //!   `nonlinear-elasticity`, `bending`, `friction`, `plasticity`, `actuation-delay`,
 //!   `grasp-slip`, `mass-distribution`), each a [`springs::Effect`] with one or two
-//!   parameters ([`forces`]), plus a generic external-field probe used to detect gaps no named
-//!   effect explains. [`Candidate::EXTRA`] holds candidates offered only on request
+//!   parameters ([`forces`]), plus a generic probe used to detect gaps no named effect
+//!   explains: an external acceleration field, first order in position within a window, plus
+//!   a workless velocity term ([`forces::ExternalField`]). [`Candidate::EXTRA`] holds candidates offered only on request
 //!   (`gravity-scale`, for recordings whose gravity or clock the backbone gets wrong). The
 //!   probe is refitted from the point the backbone's residuals converge on
 //!   ([`residual_focus`]) and from a broad start, for [`DiagnoseConfig::probe_factor`] times
@@ -62,7 +63,9 @@ mod race;
 mod stats;
 
 pub use base::{BaseEffect, backbone_options};
-pub use candidates::{Candidate, CandidateFamily, MaterialFrame, PROBE_WINDOW_M, principal_axis};
+pub use candidates::{
+    Candidate, CandidateFamily, MaterialFrame, PROBE_GYRO, PROBE_WINDOW_M, principal_axis,
+};
 pub use diagnose::{
     ControlFit, DiagnoseConfig, Diagnosis, Heldout, HowFar, RACE_SCENES, RankedEffect, TieBreak,
     diagnose, evaluate, material_frame,

@@ -139,6 +139,16 @@ fn state_dependent() -> Vec<Box<dyn Effect>> {
             gradient: -300.0,
             centre: Vec3::new(0.1, 0.02, 0.28),
             width: 0.15,
+            gyro: Vec3::ZERO,
+        }),
+        // The probe's velocity term alone (its position part off): a sideways turn of every
+        // velocity, whose transpose goes to the velocity gradient.
+        Box::new(ExternalField {
+            uniform: Vec3::ZERO,
+            gradient: 0.0,
+            centre: Vec3::ZERO,
+            width: 1.0,
+            gyro: Vec3::new(40.0, -60.0, 300.0),
         }),
     ]
 }

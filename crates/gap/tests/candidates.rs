@@ -152,9 +152,10 @@ fn the_probe_starts_at_the_residuals_focus_and_the_rest_as_before() {
     // Without a focus, every candidate starts where it always did.
     assert_eq!(probe.start_in(&plain), probe.start());
     // With one: a central field there (offset from the frame centre 0.1, 0.02, 0.05 m), no
-    // uniform part, pulling when the residuals point to it, with the lines' spread as window.
+    // uniform part, pulling when the residuals point to it, with the lines' spread as window,
+    // no velocity term.
     let s = probe.start_in(&focus([0.3, 0.02, 0.0], 0.2, true));
-    let want = [0.0, 0.0, 0.0, -2.0, 0.2, 0.0, -0.05, 0.2];
+    let want = [0.0, 0.0, 0.0, -2.0, 0.2, 0.0, -0.05, 0.2, 0.0, 0.0, 0.0];
     assert_eq!(s.len(), want.len());
     for (a, b) in s.iter().zip(want) {
         assert!((a - b).abs() < 1e-6, "{s:?}");
@@ -261,6 +262,61 @@ fn gravity_scale_multiplies_free_fall() {
             "factor {s}: dropped {drop} m, expected {expected} m"
         );
     }
+}
+
+/// The probe's velocity term `v × b` turns a lone free particle's velocity at |b| rad/s about
+/// −b̂ and keeps its speed (no gravity, no ground, position field off): after t seconds a
+/// particle moving along +x at 1 m/s with b = (0, 0, 2) 1/s moves along (cos 2t, −sin 2t, 0).
+#[test]
+fn the_probes_velocity_term_turns_without_work() {
+    let x = vec![Vec3::new(0.0, 0.0, 1.0), Vec3::new(5.0, 0.0, 1.0)];
+    let held = vec![0, -1];
+    let steps = 5;
+    let actions = Actions::new(vec![vec![x[0]]; steps + 1], vec![vec![true]; steps + 1]).unwrap();
+    let config = SimConfig {
+        ground_z: None,
+        gravity: Vec3::ZERO,
+        ..SimConfig::default()
+    };
+    let t = config.step_dt * steps as f32;
+    let f = frame(&x);
+    let probe_neutral = Candidate::ExternalField.neutral();
+    let mut probe = probe_neutral.clone();
+    probe[10] = 2.0;
+    let bb = Backbone::with_options(
+        &x,
+        &held,
+        params(),
+        config,
+        BackboneOptions {
+            masses: None,
+            effects: vec![Candidate::ExternalField.effect(&probe, &f)],
+        },
+    )
+    .unwrap();
+    let state = State {
+        x: x.clone(),
+        v: vec![Vec3::ZERO, Vec3::X],
+    };
+    let out = bb.rollout(&state, &actions).unwrap();
+    let v = out.velocities[steps][1];
+    let want = Vec3::new((2.0 * t).cos(), -(2.0 * t).sin(), 0.0);
+    assert!((v.length() - 1.0).abs() < 1e-4, "speed {}", v.length());
+    assert!((v - want).length() < 1e-3, "velocity {v}, expected {want}");
+    // Neutral (b = 0): it goes straight on.
+    let plain = Backbone::with_options(
+        &x,
+        &held,
+        params(),
+        config,
+        BackboneOptions {
+            masses: None,
+            effects: vec![Candidate::ExternalField.effect(&probe_neutral, &f)],
+        },
+    )
+    .unwrap();
+    let v = plain.rollout(&state, &actions).unwrap().velocities[steps][1];
+    assert!((v - Vec3::X).length() < 1e-6, "{v}");
 }
 
 /// A 12 x 3 strip hanging straight down from its top row (or lying flat on the ground, 4 mm

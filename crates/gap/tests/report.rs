@@ -206,8 +206,8 @@ fn a_race_keeps_the_best_refits_whole_and_marks_the_others() {
     // The control is never raced.
     assert_eq!(a.control.fitted, b.control.fitted);
     // The probe's two starts are raced against each other: the halfway losses decide which
-    // is finished, and the finished one ran its whole budget. On this fixture the halfway
-    // order is the final one, so the probe's row is the unraced diagnosis's.
+    // is finished, and the finished one ran its whole budget, so its final training loss is
+    // the unraced diagnosis's for that start (which refitted both starts whole).
     let (sa, sb) = (a.probe_start.unwrap(), b.probe_start.unwrap());
     assert!(!sa.raced && sb.raced);
     assert_eq!(
@@ -218,11 +218,17 @@ fn a_race_keeps_the_best_refits_whole_and_marks_the_others() {
         lines.iter().any(|l| l.starts_with("probe's starts raced")),
         "{lines:?}"
     );
-    assert_eq!(sa.from_focus, sb.from_focus);
-    assert_eq!(
-        a.probe.as_ref().unwrap().fitted,
-        b.probe.as_ref().unwrap().fitted
-    );
+    let whole_loss = match sb.from_focus {
+        true => sa.focus_train_loss_m2,
+        false => sa.broad_train_loss_m2,
+    };
+    assert_eq!(b.probe.as_ref().unwrap().train_loss_m2, whole_loss);
+    if sa.from_focus == sb.from_focus {
+        assert_eq!(
+            a.probe.as_ref().unwrap().fitted,
+            b.probe.as_ref().unwrap().fitted
+        );
+    }
     assert!(!b.probe.as_ref().unwrap().raced_out);
     assert!(gap::render_html(&b, "t").contains("the starts were raced"));
     let out: Vec<_> = b.ranking.iter().filter(|r| r.raced_out).collect();
