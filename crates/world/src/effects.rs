@@ -232,8 +232,10 @@ pub struct Magnet {
 /// base. Every free particle feels the Coriolis acceleration `−2 Ω ẑ × v` (sideways to its
 /// velocity, doing no work) and the centrifugal `Ω² ρ` (ρ: its horizontal offset from the
 /// axis). No candidate models a force that depends on the velocity's direction like this,
-/// and the diagnosis' probe is a position field only: a second `unknown` test, independent
-/// of the probe's form (added after the magnet, whose pull resembles the probe's).
+/// and until session 57 the diagnosis' probe was a position field only: a second `unknown`
+/// test, independent of the probe's form (added after the magnet, whose pull resembles the
+/// probe's). Since then the probe has a velocity term shaped after this effect's misses, and
+/// [`Fan`] is the test that did not shape it.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct RotatingFrame {
