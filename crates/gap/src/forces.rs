@@ -753,11 +753,12 @@ impl Effect for SlippingGrasp {
 
 /// Not a library effect: a generic external acceleration field, first order in position about a
 /// point `c` and confined to a Gaussian window of radius `w` around it, plus a workless
-/// velocity term, `a(x, v) = (a₀ + g (x − c)) exp(−|x − c|² / 2w²) + v × b` (m/s²). It probes whether a significant,
-/// learnable gap remains that no named effect explains. A wide window (`w` of metres) makes it
-/// the plain first-order field about `c`; a narrow one, a force confined to one region of the
-/// workspace (an unmodelled support, an air jet, a field source), which a global first-order
-/// field cannot follow when the object moves through the region and out again.
+/// velocity term, `a(x, v) = (a₀ + g (x − c)) exp(−|x − c|² / 2w²) + v × b` (m/s²). It probes
+/// whether a significant, learnable gap remains that no named effect explains. A wide window
+/// (`w` of metres) makes it the plain first-order field about `c`; a narrow one, a force
+/// confined to one region of the workspace (an unmodelled support, an air jet, a field
+/// source), which a global first-order field cannot follow when the object moves through the
+/// region and out again.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ExternalField {
     /// Acceleration a₀ at the centre, m/s².

@@ -8,11 +8,12 @@
 //!   `grasp-slip`, `mass-distribution`), each a [`springs::Effect`] with one or two
 //!   parameters ([`forces`]), plus a generic probe used to detect gaps no named effect
 //!   explains: an external acceleration field, first order in position within a window, plus
-//!   a workless velocity term ([`forces::ExternalField`]). [`Candidate::EXTRA`] holds candidates offered only on request
-//!   (`gravity-scale`, for recordings whose gravity or clock the backbone gets wrong). The
-//!   probe is refitted from the point the backbone's residuals converge on
-//!   ([`residual_focus`]) and from a broad start, for [`DiagnoseConfig::probe_factor`] times
-//!   the candidates' generations, and the lower training loss is kept.
+//!   a workless velocity term ([`forces::ExternalField`]). [`Candidate::EXTRA`] holds
+//!   candidates offered only on request (`gravity-scale`, for recordings whose gravity or
+//!   clock the backbone gets wrong). The probe is refitted from the point the backbone's
+//!   residuals converge on ([`residual_focus`]) and from a broad start, for
+//!   [`DiagnoseConfig::probe_factor`] times the candidates' generations, and the lower
+//!   training loss is kept.
 //! - [`diagnose`] refits the backbone alone (the control) and the backbone with each candidate on
 //!   the training scenes with the same small CMA-ES budget, scores all on held-out scenes,
 //!   bootstraps the shrinkage over episodes ([`paired_shrinkage`]) and applies the verdict

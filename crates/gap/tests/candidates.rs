@@ -220,40 +220,59 @@ fn bad_effect_parameters_are_errors_not_panics() {
     }
 }
 
+/// A lone free particle (no springs, no ground) starting at 1 m height with velocity `v0`
+/// under `candidate` at `values`, `steps` model steps on: its final position and velocity.
+/// Particle 0 is held still; the free one, 5 m away, is beyond any spring.
+fn lone_particle(
+    config: SimConfig,
+    candidate: Candidate,
+    values: &[f64],
+    v0: Vec3,
+    steps: usize,
+) -> (Vec3, Vec3) {
+    let x = vec![Vec3::new(0.0, 0.0, 1.0), Vec3::new(5.0, 0.0, 1.0)];
+    let held = vec![0, -1];
+    let actions = Actions::new(vec![vec![x[0]]; steps + 1], vec![vec![true]; steps + 1]).unwrap();
+    let config = SimConfig {
+        ground_z: None,
+        ..config
+    };
+    let bb = Backbone::with_options(
+        &x,
+        &held,
+        params(),
+        config,
+        BackboneOptions {
+            masses: None,
+            effects: vec![candidate.effect(values, &frame(&x))],
+        },
+    )
+    .unwrap();
+    let state = State {
+        x: x.clone(),
+        v: vec![Vec3::ZERO, v0],
+    };
+    // Entry 0 of a rollout is the initial state, so the last entry is `steps` steps later.
+    let out = bb.rollout(&state, &actions).unwrap();
+    (out.positions[steps][1], out.velocities[steps][1])
+}
+
 /// `gravity-scale` at factor s makes a lone free particle (no springs, no ground) fall with
 /// acceleration s g: after t seconds from rest it has dropped ½ s g t².
 #[test]
 fn gravity_scale_multiplies_free_fall() {
-    let x = vec![Vec3::new(0.0, 0.0, 1.0), Vec3::new(5.0, 0.0, 1.0)];
-    // Particle 0 is held (and never moves); particle 1 is 5 m away, beyond any spring.
-    let held = vec![0, -1];
     let steps = 10;
-    let actions = Actions::new(vec![vec![x[0]]; steps + 1], vec![vec![true]; steps + 1]).unwrap();
-    let config = SimConfig {
-        ground_z: None,
-        ..SimConfig::default()
-    };
+    let config = SimConfig::default();
     let g = -config.gravity.z;
     let t = config.step_dt * steps as f32;
-    let f = frame(&x);
     for s in [1.0f32, 1.5] {
-        let bb = Backbone::with_options(
-            &x,
-            &held,
-            params(),
+        let (end, _) = lone_particle(
             config,
-            BackboneOptions {
-                masses: None,
-                effects: vec![Candidate::GravityScale.effect(&[f64::from(s)], &f)],
-            },
-        )
-        .unwrap();
-        let state = State {
-            x: x.clone(),
-            v: vec![Vec3::ZERO; 2],
-        };
-        // Entry 0 of a rollout is the initial state, so the last entry is `steps` steps later.
-        let end = bb.rollout(&state, &actions).unwrap().positions[steps][1];
+            Candidate::GravityScale,
+            &[f64::from(s)],
+            Vec3::ZERO,
+            steps,
+        );
         let drop = 1.0 - end.z;
         let expected = 0.5 * s * g * t * t;
         // Semi-implicit Euler over many substeps: within 2 % of the exact drop.
@@ -269,53 +288,27 @@ fn gravity_scale_multiplies_free_fall() {
 /// particle moving along +x at 1 m/s with b = (0, 0, 2) 1/s moves along (cos 2t, −sin 2t, 0).
 #[test]
 fn the_probes_velocity_term_turns_without_work() {
-    let x = vec![Vec3::new(0.0, 0.0, 1.0), Vec3::new(5.0, 0.0, 1.0)];
-    let held = vec![0, -1];
     let steps = 5;
-    let actions = Actions::new(vec![vec![x[0]]; steps + 1], vec![vec![true]; steps + 1]).unwrap();
     let config = SimConfig {
-        ground_z: None,
         gravity: Vec3::ZERO,
         ..SimConfig::default()
     };
     let t = config.step_dt * steps as f32;
-    let f = frame(&x);
     let probe_neutral = Candidate::ExternalField.neutral();
     let mut probe = probe_neutral.clone();
     probe[10] = 2.0;
-    let bb = Backbone::with_options(
-        &x,
-        &held,
-        params(),
-        config,
-        BackboneOptions {
-            masses: None,
-            effects: vec![Candidate::ExternalField.effect(&probe, &f)],
-        },
-    )
-    .unwrap();
-    let state = State {
-        x: x.clone(),
-        v: vec![Vec3::ZERO, Vec3::X],
-    };
-    let out = bb.rollout(&state, &actions).unwrap();
-    let v = out.velocities[steps][1];
+    let (_, v) = lone_particle(config, Candidate::ExternalField, &probe, Vec3::X, steps);
     let want = Vec3::new((2.0 * t).cos(), -(2.0 * t).sin(), 0.0);
     assert!((v.length() - 1.0).abs() < 1e-4, "speed {}", v.length());
     assert!((v - want).length() < 1e-3, "velocity {v}, expected {want}");
     // Neutral (b = 0): it goes straight on.
-    let plain = Backbone::with_options(
-        &x,
-        &held,
-        params(),
+    let (_, v) = lone_particle(
         config,
-        BackboneOptions {
-            masses: None,
-            effects: vec![Candidate::ExternalField.effect(&probe_neutral, &f)],
-        },
-    )
-    .unwrap();
-    let v = plain.rollout(&state, &actions).unwrap().velocities[steps][1];
+        Candidate::ExternalField,
+        &probe_neutral,
+        Vec3::X,
+        steps,
+    );
     assert!((v - Vec3::X).length() < 1e-6, "{v}");
 }
 
