@@ -121,6 +121,26 @@ pub struct Drag {
     pub wind_m_s: [f32; 3],
 }
 
+impl Drag {
+    /// The object's default drag in still air (sea-level density, no wind).
+    pub fn still_air(object: ObjectKind) -> Self {
+        use ObjectKind::*;
+        let (normal, tangential) = match object {
+            Rope => (1.2, 0.02),
+            Paper => (1.2, 0.02),
+            Flag => (1.0, 0.05),
+            Sloth | Teddy => (1.0, 1.0),
+            Duster => (1.2, 0.05),
+        };
+        Drag {
+            air_density_kg_m3: 1.2,
+            normal_coefficient: normal,
+            tangential_coefficient: tangential,
+            wind_m_s: [0.0; 3],
+        }
+    }
+}
+
 /// Spatially varying stiffness: every link and bending stencil is scaled by
 /// `contrast^(s − ½)`, where `s ∈ [0, 1]` is the object's stiffness field at the element
 /// (e.g. 1 on the duster's stem, 0 on its feathers). Off: uniform stiffness (the geometric
@@ -480,21 +500,7 @@ impl Effects {
         use ObjectKind::*;
         let o = object;
         match kind {
-            EffectKind::Drag => {
-                let (normal, tangential) = match o {
-                    Rope => (1.2, 0.02),
-                    Paper => (1.2, 0.02),
-                    Flag => (1.0, 0.05),
-                    Sloth | Teddy => (1.0, 1.0),
-                    Duster => (1.2, 0.05),
-                };
-                self.drag = Some(Drag {
-                    air_density_kg_m3: 1.2,
-                    normal_coefficient: normal,
-                    tangential_coefficient: tangential,
-                    wind_m_s: [0.0; 3],
-                });
-            }
+            EffectKind::Drag => self.drag = Some(Drag::still_air(o)),
             EffectKind::StiffnessHeterogeneity => {
                 let contrast = match o {
                     Rope | Flag | Teddy => 4.0,
@@ -613,15 +619,13 @@ impl Effects {
                     Sloth | Teddy => 0.1,
                     Duster => 0.4,
                 };
-                let mut air = Effects::only(o, EffectKind::Drag);
-                let air = air.drag.take().expect("drag has defaults for every object");
                 self.fan = Some(Fan {
                     nozzle_m: [-0.6, 0.0, height],
                     direction: [1.0, 0.0, 0.0],
                     speed_m_s: DEFAULT_FAN_SPEED_M_S,
                     radius_m: 0.08,
                     spread: 0.1,
-                    air,
+                    air: Drag::still_air(o),
                 });
             }
         }
