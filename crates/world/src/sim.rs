@@ -609,6 +609,7 @@ mod tests {
         // 1 s, ~0.6 m travelled: first-order splitting errors stay well under a centimetre.
         assert!(worst < 0.005, "off the analytic path by {worst} m");
     }
+
     /// The fan pushes a particle at rest in its jet along the jet with the drag law's
     /// acceleration `½ ρ C A |w| w / m` (w: the jet's air velocity there), keeps pushing it
     /// downstream along the axis, and leaves one upstream of the nozzle alone.
