@@ -181,6 +181,10 @@ pub struct DiagnoseBenchArgs {
     /// search's included (`diagnose --probe-factor`; default: `diagnose`'s).
     #[arg(long, default_value_t = DiagnoseConfig::default().probe_factor)]
     pub probe_factor: usize,
+    /// CMA-ES candidates per generation of the probe's refit in every diagnosis, the base
+    /// search's included (`diagnose --probe-population`; 0: as every refit's).
+    #[arg(long, default_value_t = DiagnoseConfig::default().probe_population)]
+    pub probe_population: usize,
     /// Training episodes sampled per generation by every case's diagnosis refits (default:
     /// `--samples`); the backbone fit and the base search keep `--samples`, so that benches
     /// that differ only here diagnose their cases against the same base models. Measures what
@@ -472,6 +476,7 @@ fn case_config(base: &[BaseEffect], args: &DiagnoseBenchArgs, case: bool) -> Dia
         race,
         generations: args.generations,
         probe_factor: args.probe_factor,
+        probe_population: args.probe_population,
         samples,
         seed: args.seed,
         rescore: args.rescore,

@@ -83,12 +83,29 @@ pub struct DiagnoseConfig {
     /// `generations`; the kept one then runs to [`DiagnoseConfig::probe_generations`].
     #[serde(default, skip_serializing_if = "is_zero")]
     pub probe_factor: usize,
+    /// CMA-ES candidates per generation of the probe's refit (its two starts' race too); 0 (the
+    /// default, and every report written before the field existed): [`DiagnoseConfig::population`].
+    /// The probe searches eleven parameters besides the backbone's, where a library candidate
+    /// searches one or two; CMA-ES's own default population for n parameters is
+    /// 4 + ⌊3 ln n⌋ (12 for the probe's fifteen).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub probe_population: usize,
 }
 
 impl DiagnoseConfig {
     /// Generations of the probe's refit: `generations × probe_factor`.
     pub fn probe_generations(&self) -> usize {
         self.generations * self.probe_factor.max(1)
+    }
+
+    /// Candidates per generation of the probe's refit: [`DiagnoseConfig::probe_population`],
+    /// or [`DiagnoseConfig::population`] when that is 0.
+    pub fn probe_population(&self) -> usize {
+        if self.probe_population == 0 {
+            self.population
+        } else {
+            self.probe_population
+        }
     }
 }
 
@@ -125,6 +142,7 @@ impl Default for DiagnoseConfig {
             field: None,
             race: 0,
             probe_factor: 4,
+            probe_population: 0,
         }
     }
 }
@@ -532,9 +550,13 @@ pub fn diagnose(
     if val.is_empty() {
         return Err(GapError::NoScenes("held-out"));
     }
-    if config.population < 2 || config.samples == 0 || config.resamples == 0 {
+    if config.population < 2
+        || config.probe_population() < 2
+        || config.samples == 0
+        || config.resamples == 0
+    {
         return Err(GapError::Config(
-            "population >= 2, samples >= 1 and resamples >= 1 are needed".into(),
+            "population >= 2 (the probe's too), samples >= 1 and resamples >= 1 are needed".into(),
         ));
     }
     config.rule.check()?;
@@ -621,6 +643,7 @@ pub fn diagnose(
     let family_of = |cand: Option<Candidate>| family_in(cand, &frame);
     let probe_fit_cfg = FitConfig {
         generations: config.probe_generations(),
+        population: config.probe_population(),
         ..fit_cfg.clone()
     };
     let refit_in = |cand: Option<Candidate>, frame: &MaterialFrame| -> Result<Model, GapError> {
@@ -702,7 +725,7 @@ pub fn diagnose(
             (None, Some(focus)) if *cand == Candidate::ExternalField && config.race > 0 => {
                 let families = [family_of(Some(*cand))?, family_in(Some(*cand), &broad)?];
                 let (kept, [focus_loss, broad_loss], from_focus) =
-                    race_probe_starts(train, families, config, &fit_cfg)?;
+                    race_probe_starts(train, families, config, &probe_fit_cfg)?;
                 progress(&format!(
                     "probe's starts raced: training loss after {} of {} generations {focus_loss:.3e} from the focus, {broad_loss:.3e} broad; finished the {} one",
                     config.generations.div_ceil(2),

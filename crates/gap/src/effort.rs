@@ -133,13 +133,17 @@ pub fn effort(
     // race the two are raced and one is finished, to a multiple of the library's generations
     // ([`DiagnoseConfig::probe_factor`]).
     let probe_generations = config.probe_generations();
+    let probe_generation = config.probe_population() * config.samples.min(n).max(1);
     let probe_rescoring = rescoring_of(probe_generations);
-    let probe_whole = probe_generations * generation + probe_rescoring;
+    let probe_whole = probe_generations * probe_generation + probe_rescoring;
+    let probe_raced_half = half * probe_generation + 2 * RACE_SCENES.min(n);
     let probe = match (config.probe, config.race > 0) {
         (false, _) => 0,
         (true, false) => 2 * probe_whole,
         (true, true) => {
-            2 * raced_half + probe_generations.saturating_sub(half) * generation + probe_rescoring
+            2 * probe_raced_half
+                + probe_generations.saturating_sub(half) * probe_generation
+                + probe_rescoring
         }
     };
     let library_refits = if config.race > 0 && config.race < library {

@@ -98,6 +98,36 @@ fn rollouts_are_counted_as_the_diagnosis_runs_them() {
         ..small()
     };
     assert_eq!(old.probe_generations(), 3);
+    // A larger population for the probe alone: its generations score 5 candidates instead
+    // of 3, its two starts' race halves too; the library's refits are unchanged.
+    let wide = DiagnoseConfig {
+        probe_population: 5,
+        ..small()
+    };
+    assert_eq!(wide.probe_population(), 5);
+    assert_eq!(
+        small().probe_population(),
+        3,
+        "0 reads as the library's population"
+    );
+    let wide_refit = 3 * 5 + 2 * n;
+    assert_eq!(
+        gap::effort(&train, &val, &backbone(), &wide, auto)
+            .unwrap()
+            .refit_rollouts,
+        4 * refit + 2 * wide_refit
+    );
+    let wide_raced = DiagnoseConfig {
+        race: 1,
+        ..wide.clone()
+    };
+    let wide_first_half = 2 * 5 + look;
+    assert_eq!(
+        gap::effort(&train, &val, &backbone(), &wide_raced, auto)
+            .unwrap()
+            .refit_rollouts,
+        refit + 2 * wide_first_half + (5 + 2 * n) + 3 * first_half + second_half
+    );
     // A base effect is part of the model, not a candidate: one refit fewer.
     let based = DiagnoseConfig {
         base: BaseEffect::parse_list("bending").unwrap(),

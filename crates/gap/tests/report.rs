@@ -255,6 +255,48 @@ fn a_race_keeps_the_best_refits_whole_and_marks_the_others() {
     assert!(v["ranking"][0].get("raced_out").is_none());
 }
 
+#[test]
+fn the_probe_population_widens_the_probe_alone() {
+    let train = scenes(dataset::Split::Train);
+    let val = scenes(dataset::Split::Val);
+    let narrow = DiagnoseConfig {
+        population: 3,
+        generations: 2,
+        samples: 1,
+        resamples: 50,
+        candidates: vec![Candidate::Drag],
+        signature_scenes: 1,
+        rescore: 1,
+        ..DiagnoseConfig::default()
+    };
+    let wide = DiagnoseConfig {
+        probe_population: 6,
+        ..narrow.clone()
+    };
+    let base = backbone();
+    let a = gap::diagnose(&train, &val, &base, &narrow, &mut |_| {}).unwrap();
+    let b = gap::diagnose(&train, &val, &base, &wide, &mut |_| {}).unwrap();
+    // The control and the library's refits are the same draws; the probe's search is not.
+    assert_eq!(a.control.fitted, b.control.fitted);
+    assert_eq!(a.ranking[0].fitted, b.ranking[0].fitted);
+    assert_ne!(
+        a.probe.as_ref().unwrap().fitted,
+        b.probe.as_ref().unwrap().fitted
+    );
+    // Recorded when set; a report without it reads as the library's population.
+    let v = serde_json::to_value(&b).unwrap();
+    assert_eq!(v["config"]["probe_population"], 6);
+    let v = serde_json::to_value(&a).unwrap();
+    assert!(v["config"].get("probe_population").is_none());
+    // A one-candidate generation cannot adapt a search: refused, not run.
+    let one = DiagnoseConfig {
+        probe_population: 1,
+        ..narrow
+    };
+    let r = gap::diagnose(&train, &val, &base, &one, &mut |_| {});
+    assert!(matches!(r, Err(gap::GapError::Config(_))), "{r:?}");
+}
+
 /// A JSON array of numbers.
 fn floats(v: &serde_json::Value) -> Vec<f64> {
     v.as_array()
