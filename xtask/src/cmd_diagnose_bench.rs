@@ -160,6 +160,12 @@ pub struct DiagnoseBenchArgs {
     /// Seed of the data and of every fit (the `none` replicate uses seed + 1).
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// Seed of the cases' diagnoses alone (their refits' draws and bootstraps; default:
+    /// `--seed`). The data, the backbone fit and the base search keep `--seed`, so a bench that
+    /// differs only here diagnoses the same data against the same base models: it measures
+    /// how much of a verdict is the refits' luck.
+    #[arg(long)]
+    pub case_seed: Option<u64>,
     /// Final selection of every fit and refit: the optimiser's mean and the best candidates
     /// of this many of the best generations are scored on all training episodes and the best
     /// is kept (0: the best candidate by its own generation's sampled episodes).
@@ -467,10 +473,14 @@ fn diagnose(
 
 /// The settings of [`diagnose`].
 fn case_config(base: &[BaseEffect], args: &DiagnoseBenchArgs, case: bool) -> DiagnoseConfig {
-    let (race, samples) = if case {
-        (args.race, args.case_samples.unwrap_or(args.samples))
+    let (race, samples, seed) = if case {
+        (
+            args.race,
+            args.case_samples.unwrap_or(args.samples),
+            args.case_seed.unwrap_or(args.seed),
+        )
     } else {
-        (0, args.samples)
+        (0, args.samples, args.seed)
     };
     DiagnoseConfig {
         race,
@@ -478,7 +488,7 @@ fn case_config(base: &[BaseEffect], args: &DiagnoseBenchArgs, case: bool) -> Dia
         probe_factor: args.probe_factor,
         probe_population: args.probe_population,
         samples,
-        seed: args.seed,
+        seed,
         rescore: args.rescore,
         rescore_scenes: args.rescore_scenes,
         base: base.to_vec(),
@@ -1219,6 +1229,8 @@ mod tests {
             "1",
             "--probe-factor",
             "3",
+            "--case-seed",
+            "7",
             "--work",
             &work,
         ]);
@@ -1231,11 +1243,13 @@ mod tests {
         assert_eq!(base.config.race, 0, "the base search is not raced");
         assert_eq!(base.config.samples, 2, "the base search keeps --samples");
         assert_eq!(base.config.probe_factor, 3, "and the probe's length");
+        assert_eq!(base.config.seed, 0, "and the bench's seed");
         assert_eq!(summary.cases.len(), 2);
         for case in &summary.cases {
             let d = read(&format!("rope-{}-x1/report", case.truth));
             assert_eq!(d.config.race, 1);
             assert_eq!(d.config.samples, 1);
+            assert_eq!(d.config.seed, 7, "the cases' own seed");
             assert_eq!(d.config.probe_generations(), 6);
             let raced = d.ranking.iter().filter(|r| r.raced_out).count();
             assert_eq!(raced, d.ranking.len() - 1, "all but one raced out");
