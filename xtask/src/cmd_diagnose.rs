@@ -405,7 +405,6 @@ struct Level {
     race: usize,
     substep: SubstepArg,
     probe_factor: usize,
-    probe_population: usize,
     effort: gap::Effort,
 }
 
@@ -425,9 +424,6 @@ impl Level {
         if self.probe_factor != given.probe_factor {
             out.push(format!("--probe-factor {}", self.probe_factor));
         }
-        if self.probe_population != given.probe_population {
-            out.push(format!("--probe-population {}", self.probe_population));
-        }
         if self.substep != given.substep {
             out.push(format!("--substep {}", self.substep.name()));
         }
@@ -438,9 +434,8 @@ impl Level {
 /// The options as given first, then each level adding one more of what the user left open, in
 /// the order of their measured cost in verdicts (`docs/gap.md`, "Time budget"): the race
 /// (when neither `--race` nor `--substep` was given; it changed 2 of 106 bench verdicts), the
-/// probe as every other refit: their length and population (each when its flag,
-/// `--probe-factor` or `--probe-population`, was not given and the default's differs; it costs
-/// `unknown` verdicts, `docs/gap.md`, "A longer refit for the probe"), the
+/// probe at the other refits' length (when `--probe-factor` was not given and the default's
+/// is above 1; it costs `unknown` verdicts, `docs/gap.md`, "A longer refit for the probe"), the
 /// bench's default refit size (when none of `--generations`, `--samples`, `--rescore-scenes`
 /// was given; fewer generations cost bench verdicts), the spectral substep (with the race,
 /// when the run's rule is `auto`; it cost verdicts on two of three bench seeds), then, when the
@@ -458,7 +453,7 @@ fn effort_levels(
         Refits::of(config),
         config.race,
         args.substep.unwrap_or(run_substep),
-        (config.probe_factor, config.probe_population),
+        config.probe_factor,
     );
     let mut options = vec![(refits, race, substep, probe)];
     let speed_open = args.race.is_none() && args.substep.is_none();
@@ -468,18 +463,8 @@ fn effort_levels(
         race = BUDGET_RACE;
         options.push((refits, race, substep, probe));
     }
-    // The probe as every other refit: its own length and, unless given, population.
-    let (factor_open, population_open) =
-        (args.probe_factor.is_none(), args.probe_population.is_none());
-    let shorter = factor_open && probe.0 > 1;
-    let smaller = population_open && probe.1 != 0 && probe.1 != config.population;
-    if config.probe && (shorter || smaller) {
-        if shorter {
-            probe.0 = 1;
-        }
-        if smaller {
-            probe.1 = 0;
-        }
+    if args.probe_factor.is_none() && config.probe && probe > 1 {
+        probe = 1;
         options.push((refits, race, substep, probe));
     }
     if refits_open && refits != BENCH_REFITS {
@@ -496,24 +481,20 @@ fn effort_levels(
     }
     options
         .into_iter()
-        .map(
-            |(refits, race, substep, (probe_factor, probe_population))| {
-                let cfg = DiagnoseConfig {
-                    race,
-                    probe_factor,
-                    probe_population,
-                    ..refits.apply(config)
-                };
-                Ok(Level {
-                    refits,
-                    race,
-                    substep,
-                    probe_factor,
-                    probe_population,
-                    effort: gap::effort(train, val, params, &cfg, substep.substep())?,
-                })
-            },
-        )
+        .map(|(refits, race, substep, probe_factor)| {
+            let cfg = DiagnoseConfig {
+                race,
+                probe_factor,
+                ..refits.apply(config)
+            };
+            Ok(Level {
+                refits,
+                race,
+                substep,
+                probe_factor,
+                effort: gap::effort(train, val, params, &cfg, substep.substep())?,
+            })
+        })
         .collect()
 }
 
@@ -683,7 +664,6 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
         config = DiagnoseConfig {
             race: chosen.race,
             probe_factor: chosen.probe_factor,
-            probe_population: chosen.probe_population,
             ..chosen.refits.apply(&config)
         };
         if chosen.substep != substep {
@@ -810,7 +790,6 @@ mod tests {
             race,
             substep,
             probe_factor: 1,
-            probe_population: 0,
             effort: gap::Effort {
                 refit_rollouts: 1000,
                 heldout_rollouts: 0,
