@@ -1,4 +1,4 @@
-//! `cargo xtask import deform <DIR> --out <DATASET>`.
+//! `cargo xtask import deform <DIR> --out <DATASET>` and `cargo xtask dev-split`.
 
 use std::path::PathBuf;
 
@@ -42,5 +42,41 @@ pub fn run(args: &ImportArgs) -> anyhow::Result<()> {
             );
         }
     }
+    Ok(())
+}
+
+/// Arguments of `dev-split`.
+#[derive(clap::Args)]
+pub struct DevSplitArgs {
+    /// Source dataset directory (left unchanged).
+    #[arg(long)]
+    data: PathBuf,
+    /// New dataset directory (must not exist, or be empty).
+    #[arg(long)]
+    out: PathBuf,
+    /// How many of the last training episodes (in file order) become `val`: the same
+    /// episodes `train --holdout N` holds out of the source.
+    #[arg(long)]
+    hold_out: usize,
+}
+
+/// Writes the development split and prints what went where.
+pub fn dev_split(args: &DevSplitArgs) -> anyhow::Result<()> {
+    let src = dataset::Dataset::open(&args.data)
+        .with_context(|| format!("opening {}", args.data.display()))?;
+    let report = dataset::dev_split(&src, &args.out, args.hold_out)
+        .with_context(|| format!("writing the development split to {}", args.out.display()))?;
+    let (first, last) = (report.moved_to_val.first(), report.moved_to_val.last());
+    println!(
+        "{}: {} train, {} val (training episodes {}..={} of {}), {} test (its val and test) -> {}",
+        src.meta.object,
+        report.train,
+        report.val,
+        first.copied().unwrap_or_default(),
+        last.copied().unwrap_or_default(),
+        args.data.display(),
+        report.test,
+        args.out.display()
+    );
     Ok(())
 }

@@ -64,6 +64,9 @@ enum Command {
     Train(cmd_train::TrainArgs),
     /// Convert another dataset format into a pgrd dataset.
     Import(cmd_import::ImportArgs),
+    /// Copy a dataset with its last training episodes as `val` and its `val` as `test`: choose
+    /// models on training recordings, score them once on the rest.
+    DevSplit(cmd_import::DevSplitArgs),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -79,6 +82,7 @@ fn main() -> anyhow::Result<()> {
         Command::Eval(args) => cmd_eval::run(&args).map(drop),
         Command::Compare(args) => cmd_compare::run(&args),
         Command::Import(args) => cmd_import::run(&args),
+        Command::DevSplit(args) => cmd_import::dev_split(&args),
         Command::Metrics(args) => cmd_metrics::run(&args),
         Command::Plan(args) => cmd_plan::run(&args),
         Command::Render(args) => cmd_render::run(&args),

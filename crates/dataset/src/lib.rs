@@ -9,6 +9,8 @@
 //! - [`DatasetWriter`] writes episodes and the index atomically (temporary file, then rename),
 //!   into a new dataset or after an existing one's episodes ([`DatasetWriter::append`]).
 //! - [`import`] converts other formats (the DEFORM cable pickles) into this one.
+//! - [`dev_split`] copies a dataset with its last training episodes as `val` and its `val` as
+//!   `test`, so models can be chosen on training recordings and scored once on the rest.
 //! - [`carried_frame`] reads a frame with each occluded point carried from its last sighting
 //!   (a tracker's stored position for a lost point is stale); [`MaterialNeighbours`] places the
 //!   points not seen at all yet, from the neighbours they keep across the training recordings.
@@ -32,6 +34,7 @@
 //! ```
 
 mod atomic;
+mod dev_split;
 mod episode;
 mod error;
 pub mod import;
@@ -40,6 +43,7 @@ mod neighbours;
 mod occlusion;
 
 pub use atomic::write_atomic;
+pub use dev_split::{DevSplitReport, dev_split, dev_split_meta};
 pub use episode::Episode;
 pub use error::Error;
 pub use meta::{

@@ -7,7 +7,7 @@ use crate::{Episode, Error, Result, write_atomic};
 /// The format tag this crate reads and writes in `dataset.json`.
 pub const FORMAT_VERSION: &str = "pgrd-dataset/1";
 
-const INDEX_FILE: &str = "dataset.json";
+pub(crate) const INDEX_FILE: &str = "dataset.json";
 
 /// How grippers act on the object.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]

@@ -1,0 +1,131 @@
+//! A development split: choose models on training recordings only, keep the held-out split
+//! for one final score.
+//!
+//! Every pgrd stage that compares models (the diagnosis's rounds, `train --holdout`'s
+//! checkpoint and recipe choice) judges on some held-out episodes. When those are the
+//! dataset's `val` split and the final numbers are reported on `val` too, the report has seen
+//! its own test. [`dev_split`] writes a copy of a dataset in which the last `hold_out`
+//! training episodes become `val` (exactly the episodes `train --holdout <hold_out>` holds
+//! out of the original), the old `val` becomes `test`, and nothing else changes.
+
+use std::path::Path;
+
+use crate::meta::INDEX_FILE;
+use crate::{Dataset, DatasetMeta, Error, Result, Split, write_atomic};
+
+/// What [`dev_split`] wrote: episode counts per split of the new dataset, and the dataset
+/// indices of the training episodes that became `val`.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct DevSplitReport {
+    /// Training episodes left in `train`.
+    pub train: usize,
+    /// The new `val` episodes (the last `hold_out` of the old `train`).
+    pub val: usize,
+    /// `test` episodes: the old `val` plus any old `test`.
+    pub test: usize,
+    /// Dataset indices (the same in both datasets) of the episodes moved to `val`.
+    pub moved_to_val: Vec<usize>,
+}
+
+/// The index of `meta` with its last `hold_out` training episodes (in file order) moved to
+/// `val` and its `val` episodes moved to `test`. Errors when `hold_out` is 0 or leaves no
+/// training episode.
+pub fn dev_split_meta(meta: &DatasetMeta, hold_out: usize) -> Result<(DatasetMeta, Vec<usize>)> {
+    let train: Vec<usize> = (meta.episodes.iter().enumerate())
+        .filter(|(_, e)| e.split == Split::Train)
+        .map(|(i, _)| i)
+        .collect();
+    if hold_out == 0 || hold_out >= train.len() {
+        return Err(Error::invalid(
+            INDEX_FILE,
+            format!(
+                "cannot hold out {hold_out} of {} training episodes (need 1 ..= {})",
+                train.len(),
+                train.len().saturating_sub(1)
+            ),
+        ));
+    }
+    let moved = train[train.len() - hold_out..].to_vec();
+    let mut out = meta.clone();
+    for (i, e) in out.episodes.iter_mut().enumerate() {
+        e.split = match e.split {
+            Split::Train if moved.contains(&i) => Split::Val,
+            Split::Train => Split::Train,
+            Split::Val | Split::Test => Split::Test,
+        };
+    }
+    Ok((out, moved))
+}
+
+/// Writes the development split of `src` (see [`dev_split_meta`]) as a new dataset in `out`,
+/// which must not exist yet or be an empty directory. Every plain file of `src` besides its
+/// index (episodes, provenance, ground-truth Gaussians) is copied unchanged, each atomically;
+/// the new index is written last, so an interrupted copy leaves no dataset that opens.
+///
+/// ```
+/// use dataset::{Dataset, DatasetMeta, DatasetWriter, Episode, Manipulation, Split, dev_split};
+/// use glam::Vec3;
+/// # let base = std::env::temp_dir().join(format!("pgrd-devsplit-doc-{}", std::process::id()));
+/// # let (src, out) = (base.join("src"), base.join("dev"));
+/// let mut w = DatasetWriter::create(&src, DatasetMeta::new("rope", 10.0, Manipulation::Grasp))?;
+/// let ep = Episode::new(1, 1, 1, vec![Vec3::ZERO], vec![Vec3::ZERO])?;
+/// for split in [Split::Train, Split::Train, Split::Train, Split::Val] {
+///     w.add_episode(&ep, split)?;
+/// }
+/// let src = w.finish()?;
+/// let report = dev_split(&src, &out, 1)?;
+/// assert_eq!((report.train, report.val, report.test), (2, 1, 1));
+/// assert_eq!(Dataset::open(&out)?.split_indices(Split::Val), vec![2]);
+/// # std::fs::remove_dir_all(&base).ok();
+/// # Ok::<(), dataset::Error>(())
+/// ```
+pub fn dev_split(src: &Dataset, out: &Path, hold_out: usize) -> Result<DevSplitReport> {
+    let (meta, moved) =
+        dev_split_meta(&src.meta, hold_out).map_err(|e| relocate(e, &src.root.join(INDEX_FILE)))?;
+    let occupied = out.exists()
+        && std::fs::read_dir(out)
+            .map_err(|e| Error::io(out, e))?
+            .next()
+            .is_some();
+    if occupied {
+        return Err(Error::invalid(
+            out,
+            "the output directory exists and is not empty (a development split is always \
+             written to a new directory)",
+        ));
+    }
+    std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
+    let entries = std::fs::read_dir(&src.root).map_err(|e| Error::io(&src.root, e))?;
+    for entry in entries {
+        let entry = entry.map_err(|e| Error::io(&src.root, e))?;
+        let path = entry.path();
+        let is_file = entry
+            .file_type()
+            .map_err(|e| Error::io(&path, e))?
+            .is_file();
+        if !is_file || entry.file_name() == INDEX_FILE {
+            continue;
+        }
+        let bytes = std::fs::read(&path).map_err(|e| Error::io(&path, e))?;
+        write_atomic(&out.join(entry.file_name()), &bytes)?;
+    }
+    let index = out.join(INDEX_FILE);
+    let text = serde_json::to_string_pretty(&meta)
+        .map_err(|e| Error::invalid(&index, format!("cannot serialise index: {e}")))?;
+    write_atomic(&index, text.as_bytes())?;
+    let count = |s| meta.episodes.iter().filter(|e| e.split == s).count();
+    Ok(DevSplitReport {
+        train: count(Split::Train),
+        val: count(Split::Val),
+        test: count(Split::Test),
+        moved_to_val: moved,
+    })
+}
+
+/// The same error, naming `path` (the source index) instead of the bare index file name.
+fn relocate(e: Error, path: &Path) -> Error {
+    match e {
+        Error::Invalid { message, .. } => Error::invalid(path, message),
+        other => other,
+    }
+}

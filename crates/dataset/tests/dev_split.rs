@@ -1,0 +1,129 @@
+//! The development split: which episodes move where, the copy is faithful, bad requests are
+//! refused before anything is written.
+
+use dataset::{
+    Dataset, DatasetMeta, DatasetWriter, Episode, EpisodeEntry, Error, Manipulation, Split,
+    dev_split, dev_split_meta,
+};
+use glam::Vec3;
+use proptest::prelude::*;
+
+mod common;
+
+fn episode(k: usize) -> Episode {
+    let x = k as f32 * 0.01;
+    Episode::new(
+        2,
+        2,
+        1,
+        vec![
+            Vec3::new(x, 0.0, 0.0),
+            Vec3::X,
+            Vec3::new(x, 0.1, 0.0),
+            Vec3::X,
+        ],
+        vec![Vec3::ZERO, Vec3::Z],
+    )
+    .unwrap()
+}
+
+/// A dataset whose splits are interleaved, so "the last training episodes" is not "the last
+/// episodes".
+fn interleaved(dir: &std::path::Path) -> Dataset {
+    use Split::*;
+    let splits = [Train, Train, Val, Train, Test, Train, Val, Train, Train];
+    let mut w =
+        DatasetWriter::create(dir, DatasetMeta::new("rope", 10.0, Manipulation::Grasp)).unwrap();
+    for (k, s) in splits.into_iter().enumerate() {
+        w.add_episode(&episode(k), s).unwrap();
+    }
+    std::fs::write(dir.join("import.json"), b"{\"source\": \"test\"}").unwrap();
+    w.finish().unwrap()
+}
+
+#[test]
+fn moves_the_last_training_episodes_to_val_and_val_to_test() {
+    let base = common::tmpdir("devsplit", "moves");
+    let src = interleaved(&base.join("src"));
+    let out = base.join("dev");
+    let report = dev_split(&src, &out, 2).unwrap();
+    assert_eq!(report.moved_to_val, vec![7, 8]);
+    assert_eq!((report.train, report.val, report.test), (4, 2, 3));
+    let dev = Dataset::open(&out).unwrap();
+    assert_eq!(dev.split_indices(Split::Train), vec![0, 1, 3, 5]);
+    assert_eq!(dev.split_indices(Split::Val), vec![7, 8]);
+    assert_eq!(dev.split_indices(Split::Test), vec![2, 4, 6]);
+    // What `train --holdout 2` holds out of the original: its last two training episodes.
+    let train = src.split_indices(Split::Train);
+    assert_eq!(report.moved_to_val, train[train.len() - 2..]);
+    // Everything else is the source's, and every file is copied byte for byte.
+    assert_eq!(dev.meta.object, src.meta.object);
+    for k in 0..src.meta.episodes.len() {
+        assert_eq!(dev.load_episode(k).unwrap(), src.load_episode(k).unwrap());
+        assert_eq!(
+            std::fs::read(dev.episode_path(k).unwrap()).unwrap(),
+            std::fs::read(src.episode_path(k).unwrap()).unwrap()
+        );
+    }
+    assert_eq!(
+        std::fs::read(out.join("import.json")).unwrap(),
+        std::fs::read(src.root.join("import.json")).unwrap()
+    );
+    // The source is untouched.
+    assert_eq!(Dataset::open(&src.root).unwrap().meta, src.meta);
+}
+
+#[test]
+fn refuses_bad_counts_and_occupied_outputs_before_writing() {
+    let base = common::tmpdir("devsplit", "refuses");
+    let src = interleaved(&base.join("src"));
+    for n in [0, 6, 7] {
+        let out = base.join(format!("dev{n}"));
+        let err = dev_split(&src, &out, n).unwrap_err();
+        assert!(matches!(err, Error::Invalid { .. }), "{err}");
+        let text = err.to_string();
+        assert!(text.contains("6 training episodes"), "{text}");
+        assert!(text.contains("dataset.json"), "{text}");
+        assert!(!out.exists(), "nothing may be written for n = {n}");
+    }
+    let occupied = base.join("occupied");
+    std::fs::create_dir_all(&occupied).unwrap();
+    std::fs::write(occupied.join("keep.txt"), b"mine").unwrap();
+    let err = dev_split(&src, &occupied, 2).unwrap_err().to_string();
+    assert!(err.contains("not empty"), "{err}");
+    assert_eq!(std::fs::read(occupied.join("keep.txt")).unwrap(), b"mine");
+    assert!(!occupied.join("dataset.json").exists());
+    // An empty directory is fine.
+    let empty = base.join("empty");
+    std::fs::create_dir_all(&empty).unwrap();
+    assert!(dev_split(&src, &empty, 1).is_ok());
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(64))]
+    #[test]
+    fn counts_and_order_are_kept(splits in prop::collection::vec(0u8..3, 1..30), n in 0usize..12) {
+        let split_of = |k: u8| match k { 0 => Split::Train, 1 => Split::Val, _ => Split::Test };
+        let mut meta = DatasetMeta::new("x", 10.0, Manipulation::Grasp);
+        meta.episodes = splits.iter().enumerate()
+            .map(|(i, &k)| EpisodeEntry { file: format!("ep_{i:04}.safetensors"), split: split_of(k) })
+            .collect();
+        let train: Vec<usize> = (0..splits.len()).filter(|&i| splits[i] == 0).collect();
+        match dev_split_meta(&meta, n) {
+            Err(_) => prop_assert!(n == 0 || n >= train.len()),
+            Ok((dev, moved)) => {
+                prop_assert!(n >= 1 && n < train.len());
+                prop_assert_eq!(&moved, &train[train.len() - n..].to_vec());
+                for (i, (a, b)) in meta.episodes.iter().zip(&dev.episodes).enumerate() {
+                    prop_assert_eq!(&a.file, &b.file);
+                    let want = match a.split {
+                        Split::Train if moved.contains(&i) => Split::Val,
+                        Split::Train => Split::Train,
+                        _ => Split::Test,
+                    };
+                    prop_assert_eq!(b.split, want);
+                }
+            }
+        }
+    }
+}
