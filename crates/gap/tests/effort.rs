@@ -213,3 +213,38 @@ fn empty_splits_are_errors() {
     );
     assert!(matches!(r, Err(gap::GapError::NoScenes(_))));
 }
+
+#[test]
+fn a_refined_stiffness_field_counts_toward_the_substep() {
+    let train = scenes(dataset::Split::Train);
+    let val = scenes(dataset::Split::Val);
+    let auto = springs::Substep::AUTO;
+    // Stiff enough that the substep follows the stiffness, not the 2 ms accuracy cap.
+    let base = springs::SpringParams {
+        stiffness: 2e5,
+        ..backbone()
+    };
+    let e = |p: &springs::SpringParams, field: Option<Vec<f32>>| {
+        let cfg = DiagnoseConfig { field, ..small() };
+        gap::effort(&train, &val, p, &cfg, auto).unwrap()
+    };
+    let plain = e(&base, None);
+    let tracked = train[0].tracked;
+    // A field of e^2 everywhere is the same model as e^2 times the stiffness.
+    let field = e(&base, Some(vec![2.0; tracked]));
+    let scaled = springs::SpringParams {
+        stiffness: base.stiffness * 2f32.exp(),
+        ..base
+    };
+    let stiffer = e(&scaled, None);
+    assert!(
+        field.substeps > plain.substeps,
+        "field {} vs plain {} substeps",
+        field.substeps,
+        plain.substeps
+    );
+    assert_eq!(field.substeps, stiffer.substeps);
+    assert_eq!(field.work_per_rollout, stiffer.work_per_rollout);
+    // A zero field changes nothing.
+    assert_eq!(e(&base, Some(vec![0.0; tracked])).substeps, plain.substeps);
+}
