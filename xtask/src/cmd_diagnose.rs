@@ -124,7 +124,8 @@ pub struct DiagnoseArgs {
     /// `eval`, `train`, `render` and another `diagnose`, which then starts from those effects
     /// as its base). With the verdict `none`
     /// or `unknown` it holds the control refit instead (the run's own effects refitted, none
-    /// added; the command prints its held-out MDE beside the model as given). A refined
+    /// added; the command prints its held-out MDE beside the model as given, and a note when
+    /// the model as given is the better of the two). A refined
     /// stiffness field of the run (`refine`) is kept as it is: the diagnosis holds it fixed.
     #[arg(long)]
     pub write_run: Option<PathBuf>,
@@ -748,6 +749,14 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
                     d.control.heldout_mde_cm,
                     d.backbone_as_given.mde_cm
                 );
+                if d.control.heldout_mde_cm > d.backbone_as_given.mde_cm {
+                    // Session 59: after `refine`, two cables' control refits lost to the
+                    // refined model they started from, on the held-out and the eval files.
+                    println!(
+                        "note: the control refit is worse than the model as given on the held-out                          episodes; {} may be the better model to carry on with",
+                        args.run.display()
+                    );
+                }
             }
             if substep != backbone.substep {
                 // The refits' damping suits the rule they ran under, so the run keeps it.
