@@ -753,7 +753,8 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
                     // Session 59: after `refine`, two cables' control refits lost to the
                     // refined model they started from, on the held-out and the eval files.
                     println!(
-                        "note: the control refit is worse than the model as given on the held-out                          episodes; {} may be the better model to carry on with",
+                        "note: the control refit is worse than the model as given on the held-out episodes; \
+                         {} may be the better model to carry on with",
                         args.run.display()
                     );
                 }

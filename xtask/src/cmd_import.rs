@@ -68,13 +68,14 @@ pub fn dev_split(args: &DevSplitArgs) -> anyhow::Result<()> {
         .with_context(|| format!("writing the development split to {}", args.out.display()))?;
     let (first, last) = (report.moved_to_val.first(), report.moved_to_val.last());
     println!(
-        "{}: {} train, {} val (training episodes {}..={} of {}), {} test (its val and test) -> {}",
+        "{}: {} train, {} val (the last {} training episodes of {}, dataset indices {}..={}), {} test (its val and test) -> {}",
         src.meta.object,
         report.train,
         report.val,
+        report.val,
+        args.data.display(),
         first.copied().unwrap_or_default(),
         last.copied().unwrap_or_default(),
-        args.data.display(),
         report.test,
         args.out.display()
     );
