@@ -99,11 +99,8 @@ pub fn dev_split(src: &Dataset, out: &Path, hold_out: usize) -> Result<DevSplitR
     for entry in entries {
         let entry = entry.map_err(|e| Error::io(&src.root, e))?;
         let path = entry.path();
-        let is_file = entry
-            .file_type()
-            .map_err(|e| Error::io(&path, e))?
-            .is_file();
-        if !is_file || entry.file_name() == INDEX_FILE {
+        // Follows links: an episode stored as a link to a file is copied as that file.
+        if !path.is_file() || entry.file_name() == INDEX_FILE {
             continue;
         }
         let bytes = std::fs::read(&path).map_err(|e| Error::io(&path, e))?;

@@ -127,3 +127,21 @@ proptest! {
         }
     }
 }
+
+#[cfg(unix)]
+#[test]
+fn an_episode_stored_as_a_link_is_copied_as_its_file() {
+    let base = common::tmpdir("devsplit", "link");
+    let src = interleaved(&base.join("src"));
+    // Move episode 3's file elsewhere and leave a link in its place.
+    let stored = src.episode_path(3).unwrap();
+    let elsewhere = base.join("elsewhere.safetensors");
+    std::fs::rename(&stored, &elsewhere).unwrap();
+    std::os::unix::fs::symlink(&elsewhere, &stored).unwrap();
+    let out = base.join("dev");
+    dev_split(&src, &out, 2).unwrap();
+    let dev = Dataset::open(&out).unwrap();
+    let copied = dev.episode_path(3).unwrap();
+    assert!(!copied.is_symlink(), "the copy holds the file itself");
+    assert_eq!(dev.load_episode(3).unwrap(), episode(3));
+}
