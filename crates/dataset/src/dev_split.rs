@@ -10,7 +10,7 @@
 
 use std::path::Path;
 
-use crate::meta::INDEX_FILE;
+use crate::meta::{INDEX_FILE, write_index};
 use crate::{Dataset, DatasetMeta, Error, Result, Split, write_atomic};
 
 /// What [`dev_split`] wrote: episode counts per split of the new dataset, and the dataset
@@ -106,10 +106,7 @@ pub fn dev_split(src: &Dataset, out: &Path, hold_out: usize) -> Result<DevSplitR
         let bytes = std::fs::read(&path).map_err(|e| Error::io(&path, e))?;
         write_atomic(&out.join(entry.file_name()), &bytes)?;
     }
-    let index = out.join(INDEX_FILE);
-    let text = serde_json::to_string_pretty(&meta)
-        .map_err(|e| Error::invalid(&index, format!("cannot serialise index: {e}")))?;
-    write_atomic(&index, text.as_bytes())?;
+    write_index(out, &meta)?;
     let count = |s| meta.episodes.iter().filter(|e| e.split == s).count();
     Ok(DevSplitReport {
         train: count(Split::Train),

@@ -274,13 +274,18 @@ impl DatasetWriter {
 
     /// Writes `dataset.json` and returns the opened dataset.
     pub fn finish(self) -> Result<Dataset> {
-        let path = self.root.join(INDEX_FILE);
-        let text = serde_json::to_string_pretty(&self.meta)
-            .map_err(|e| Error::invalid(&path, format!("cannot serialise index: {e}")))?;
-        write_atomic(&path, text.as_bytes())?;
+        write_index(&self.root, &self.meta)?;
         Ok(Dataset {
             root: self.root,
             meta: self.meta,
         })
     }
+}
+
+/// Writes `meta` as `<root>/dataset.json`, atomically.
+pub(crate) fn write_index(root: &Path, meta: &DatasetMeta) -> Result<()> {
+    let path = root.join(INDEX_FILE);
+    let text = serde_json::to_string_pretty(meta)
+        .map_err(|e| Error::invalid(&path, format!("cannot serialise index: {e}")))?;
+    write_atomic(&path, text.as_bytes())
 }
