@@ -106,10 +106,10 @@ pub struct TrainArgs {
     pub snapshot_every: usize,
     /// Hold this many training episodes out of the optimiser's sampling (the last ones of the
     /// split: whole recordings, as the val split) and choose the network by its rollout MDE
-    /// over their full evaluation windows: the network of step 0 (nearly the backbone),
-    /// replaced at each evaluation (every --select-every steps and at the end) by one that
-    /// beats the current choice by more than one standard error of the paired per-episode
-    /// differences; the choice is written to residual.safetensors (0: no selection, the last
+    /// over their full evaluation windows: the backbone itself (the step-0 network without its
+    /// residual; with --init-from, that network), replaced at each evaluation (every
+    /// --select-every steps and at the end) by one that beats the current choice by more than
+    /// one standard error of the paired per-episode differences; the choice is written to residual.safetensors (0: no selection, the last
     /// network is written). The val split is never used. See docs/residual.md.
     #[arg(long, default_value_t = 0)]
     pub holdout: usize,
@@ -264,18 +264,41 @@ impl Selection {
 
     /// Records the held-out MDE of `trainer`'s network and saves it as the run's network when
     /// it is the first evaluated or [`residual::clearly_better`] than the one selected so far.
-    fn record(&mut self, held: &TrainSet, trainer: &Trainer, run: &Path) -> anyhow::Result<()> {
+    ///
+    /// With `first_is_backbone`, the first network recorded is that network without its
+    /// residual ([`ResidualNet::without_residual`]): the choice starts at the backbone itself,
+    /// so a run that keeps it predicts exactly as the backbone (an untrained network is only
+    /// close to it). A run fine-tuned from another network (`--init-from`) starts at that
+    /// network instead.
+    fn record(
+        &mut self,
+        held: &TrainSet,
+        trainer: &Trainer,
+        run: &Path,
+        first_is_backbone: bool,
+    ) -> anyhow::Result<()> {
         if self.steps.last() == Some(&trainer.step) {
             return Ok(());
         }
-        let per_episode = trainer.with_averaged(|net| held.rollout_mde_cm(Some(net)))??;
+        let quiet = match (self.steps.is_empty() && first_is_backbone, trainer.step) {
+            (true, 0) => Some(trainer.with_averaged(|net| net.without_residual())??),
+            _ => None,
+        };
+        let per_episode = match &quiet {
+            Some(net) => held.rollout_mde_cm(Some(net))?,
+            None => trainer.with_averaged(|net| held.rollout_mde_cm(Some(net)))??,
+        };
         let mde = per_episode.iter().sum::<f64>() / per_episode.len().max(1) as f64;
         self.steps.push(trainer.step);
         self.mde_cm.push(mde.is_finite().then_some(mde));
         if self.steps.len() == 1 || clearly_better(&per_episode, &self.best_episode_mde_cm) {
             self.best_step = trainer.step;
             self.best_episode_mde_cm = per_episode;
-            trainer.with_averaged(|net| net.save(&run.join("residual.safetensors")))??;
+            let path = run.join("residual.safetensors");
+            match &quiet {
+                Some(net) => net.save(&path)?,
+                None => trainer.with_averaged(|net| net.save(&path))??,
+            }
         }
         Ok(())
     }
@@ -554,7 +577,7 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
             },
         };
         sel.every = args.select_every.max(1);
-        sel.record(held, &trainer, &args.run)?;
+        sel.record(held, &trainer, &args.run, init_from.is_none())?;
         selection = Some(sel);
     }
     let mut diverged_rollouts = 0;
@@ -641,7 +664,7 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
         if let (Some(held), Some(sel)) = (&held, &mut selection)
             && trainer.step % sel.every == 0
         {
-            sel.record(held, &trainer, &args.run)?;
+            sel.record(held, &trainer, &args.run, init_from.is_none())?;
         }
         if trainer.step % args.checkpoint_every.max(1) == 0 {
             save(
@@ -665,7 +688,7 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
     }
     bar.finish_and_clear();
     if let (Some(held), Some(sel)) = (&held, &mut selection) {
-        sel.record(held, &trainer, &args.run)?;
+        sel.record(held, &trainer, &args.run, init_from.is_none())?;
     }
     save(
         &trainer,
@@ -710,7 +733,20 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
             report_path.display()
         ),
     );
-    if let Some(sel) = &selection {
+    if let Some(sel) = selection
+        .as_ref()
+        .filter(|s| s.best_step == 0 && init_from.is_none())
+    {
+        say(
+            args,
+            format!(
+                "kept the backbone: no network of {} steps beat it clearly on {} held-out training episodes (backbone {:.3} cm); residual.safetensors adds no residual",
+                trainer.step,
+                sel.episodes.len(),
+                sel.backbone_mde_cm
+            ),
+        );
+    } else if let Some(sel) = &selection {
         say(
             args,
             format!(
@@ -800,6 +836,51 @@ mod tests {
         assert!(err.contains("residual_scale"), "{err}");
         let missing = initial_network(&dir.join("none.safetensors"), &cfg).unwrap_err();
         assert!(format!("{missing:#}").contains("none"), "{missing:#}");
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
+    /// Held-out selection starts at the backbone itself: the network it writes at step 0
+    /// scores exactly the backbone's held-out errors; a run fine-tuned from a network starts
+    /// at that network, which does not.
+    #[test]
+    fn selection_starts_at_the_backbone_itself() {
+        let dir = std::env::temp_dir().join(format!("pgrd-selection-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../fixtures/rope");
+        let data = Dataset::open(&root).unwrap();
+        let mut set = TrainSet::new(
+            &data,
+            Split::Train,
+            &springs::SpringParams::reference_rope(),
+            &Default::default(),
+        )
+        .unwrap();
+        let held = set.hold_out(1).unwrap();
+        let backbone = held.rollout_mde_cm(None).unwrap();
+        let net = ResidualNet::new(&ModelConfig::tiny(), 3).unwrap();
+        let trainer = Trainer::new(net, TrainConfig::default()).unwrap();
+        let path = dir.join("residual.safetensors");
+        for first_is_backbone in [true, false] {
+            let mut sel = Selection {
+                episodes: held.episode_indices(),
+                every: 10,
+                backbone_mde_cm: 0.0,
+                steps: Vec::new(),
+                mde_cm: Vec::new(),
+                best_step: 0,
+                best_episode_mde_cm: Vec::new(),
+            };
+            sel.record(&held, &trainer, &dir, first_is_backbone)
+                .unwrap();
+            let written = ResidualNet::load(&path).unwrap();
+            let scored = held.rollout_mde_cm(Some(&written)).unwrap();
+            assert_eq!(scored, sel.best_episode_mde_cm);
+            assert_eq!(
+                scored == backbone,
+                first_is_backbone,
+                "{scored:?} vs {backbone:?}"
+            );
+        }
         std::fs::remove_dir_all(&dir).ok();
     }
 }

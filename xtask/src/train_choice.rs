@@ -128,10 +128,10 @@ fn recipe_dir(run: &Path, recipe: Recipe, start_modes: usize, losses: usize) -> 
 /// the first, replaced by a later one only when that one is clearly better than the current
 /// choice.
 ///
-/// A candidate whose selected network is the untrained step-0 one never replaces the choice:
-/// output layers start scaled to the bound, so every step-0 network is nearly the backbone, and
-/// their held-out errors differ by float rounding (10⁻⁶ cm) that can be consistently signed,
-/// which the one-standard-error rule alone would call clearly better.
+/// A candidate whose selected network is the step-0 one never replaces the choice: every such
+/// network is the backbone itself (trained without `--init-from`; before, an untrained network
+/// near it), so their held-out errors are equal or differ by float rounding (10⁻⁶ cm) that can
+/// be consistently signed, which the one-standard-error rule alone would call clearly better.
 fn choose(per_episode: &[Vec<f64>], selected_step: &[u64]) -> usize {
     let mut best = 0;
     for (i, errors) in per_episode.iter().enumerate().skip(1) {

@@ -269,6 +269,37 @@ impl ResidualNet {
         Ok(())
     }
 
+    /// A copy of this network that adds no residual: its residual-valued output layers (the
+    /// decoder's last layer and the temporal aggregator's offset, the layers named `*.out`)
+    /// are zero and every other parameter is copied, so `Δ = 0` for every input and the hybrid
+    /// model steps exactly as its backbone alone.
+    ///
+    /// Held-out selection (`cargo xtask train --holdout`) writes it when no trained network
+    /// beats the backbone clearly: "keep the backbone" is then exact, not a step-0 network
+    /// that is only close to it (`docs/residual.md`).
+    ///
+    /// ```
+    /// use residual::{ModelConfig, ResidualNet};
+    /// let net = ResidualNet::new(&ModelConfig::tiny(), 1)?;
+    /// let quiet = net.without_residual()?;
+    /// assert_eq!(quiet.config(), net.config());
+    /// assert_eq!(quiet.parameter_count(), net.parameter_count());
+    /// # Ok::<(), residual::ResidualError>(())
+    /// ```
+    pub fn without_residual(&self) -> Result<ResidualNet> {
+        let copy = ResidualNet::new(&self.cfg, 0)?;
+        let own: std::collections::HashMap<String, Var> = self.named_vars().into_iter().collect();
+        for (name, var) in copy.named_vars() {
+            let layer = name.rsplit_once('.').map_or(name.as_str(), |(l, _)| l);
+            if layer.ends_with(".out") {
+                var.set(&var.as_tensor().zeros_like()?)?;
+            } else if let Some(src) = own.get(&name) {
+                var.set(src.as_tensor())?;
+            }
+        }
+        Ok(copy)
+    }
+
     /// The configuration.
     pub fn config(&self) -> &ModelConfig {
         &self.cfg

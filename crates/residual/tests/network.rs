@@ -167,6 +167,67 @@ fn checkpoint_reloads_to_identical_predictions() {
     std::fs::remove_dir_all(dir).ok();
 }
 
+/// A network without its residual steps exactly as the backbone alone, in every variant, and
+/// keeps every other parameter of the network it came from.
+#[test]
+fn a_network_without_residual_is_the_backbone() {
+    let (_, _, scene, history, bb) = common::scene("rope", 1);
+    let opts = RolloutOptions {
+        steps: 4,
+        ..Default::default()
+    };
+    let sim = bb.rollout(&scene.init, &scene.actions).unwrap().positions;
+    let t = ModelConfig::tiny();
+    let variants = [
+        t.clone(),
+        ModelConfig {
+            residual_scale: 1.0,
+            ..t.clone()
+        },
+        ModelConfig {
+            encoder: EncoderKind::Pointnet,
+            decoder: false,
+            ..t.clone()
+        },
+        ModelConfig {
+            combine: Combine::Add,
+            residual: ResidualKind::Position,
+            ..t.clone()
+        },
+        ModelConfig {
+            combine: Combine::None,
+            ..t
+        },
+    ];
+    for cfg in variants {
+        let net = ResidualNet::new(&cfg, 7).unwrap();
+        let before = hybrid_rollout(&net, &bb, &scene, &history, opts).unwrap();
+        // The untrained network itself is not the backbone: the check below can fail.
+        assert_ne!(before.positions[..], sim[1..5], "{cfg:?}");
+        let quiet = net.without_residual().unwrap();
+        let out = hybrid_rollout(&quiet, &bb, &scene, &history, opts).unwrap();
+        assert_eq!(out.positions[..], sim[1..5], "{cfg:?}");
+        let pred =
+            residual::predict(&quiet, &bb, &scene.init, &history, &scene.actions, 4).unwrap();
+        assert_eq!(pred[..], sim[1..5], "{cfg:?}");
+        // Only the output layers changed.
+        let own = net.named_vars();
+        for ((name, a), (other, b)) in own.iter().zip(quiet.named_vars()) {
+            assert_eq!(name, &other);
+            let a: Vec<f32> = a.as_tensor().flatten_all().unwrap().to_vec1().unwrap();
+            let b: Vec<f32> = b.as_tensor().flatten_all().unwrap().to_vec1().unwrap();
+            if name.contains(".out.") {
+                assert!(b.iter().all(|&x| x == 0.0), "{name}");
+            } else {
+                assert_eq!(a, b, "{name}");
+            }
+        }
+        // The original network is untouched.
+        let again = hybrid_rollout(&net, &bb, &scene, &history, opts).unwrap();
+        assert_eq!(again.positions, before.positions);
+    }
+}
+
 /// An untrained network adds about the same residual whatever its bound (its output layers
 /// start smaller by 0.1 / bound), so a step-0 network stays near the backbone; at the paper's
 /// bound the draw is unchanged.
