@@ -123,9 +123,9 @@ pub struct DiagnoseArgs {
     /// parameters and the base effects plus the verdict's, at their refitted values (for
     /// `eval`, `train`, `render` and another `diagnose`, which then starts from those effects
     /// as its base). With the verdict `none`
-    /// or `unknown` it holds the control refit instead (the run's own effects refitted, none
-    /// added; the command prints its held-out MDE beside the model as given, and a note when
-    /// the model as given is the better of the two). A refined
+    /// or `unknown` it holds the better on the held-out episodes of the control refit (the
+    /// run's own effects refitted, none added) and the model as given (both held-out MDEs are
+    /// printed). A refined
     /// stiffness field of the run (`refine`) is kept as it is: the diagnosis holds it fixed.
     #[arg(long)]
     pub write_run: Option<PathBuf>,
@@ -714,8 +714,8 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
     );
     // The user's next step: diagnose again with the verdict's effect in the model. With the
     // verdict `none` / `unknown` there is no effect to add, but the control refit (the same
-    // model refitted on the train split) may still differ from the model as given, for better
-    // or worse: `--write-run` writes it, with both scores.
+    // model refitted on the train split) may still beat the model as given: `--write-run`
+    // writes the better of the two on the held-out episodes, with both scores.
     let added = Candidate::parse(&d.verdict).ok();
     if added.is_some() || args.write_run.is_some() {
         let (params, effects) = d.refitted_model(&backbone.params, added)?;
@@ -728,8 +728,13 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
         }
         if let Some(dir) = &args.write_run {
             let mut file = backbone.clone();
-            file.params = params;
-            file.effects = effects;
+            // No effect to add and the control refit no better on the held-out episodes than
+            // the model as given (session 59: two refined cables): carry the model on as given.
+            let as_given = added.is_none() && !control_is_better(&d);
+            if !as_given {
+                file.params = params;
+                file.effects = effects;
+            }
             file.protocol = protocol.name().to_string();
             file.substep = substep;
             std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
@@ -742,22 +747,18 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
                 );
             } else {
                 println!(
-                    "verdict {}: no effect to add; wrote the control refit to {} ({}; held-out MDE {:.3} cm, as given {:.3} cm)",
+                    "verdict {}: no effect to add; wrote the {} to {} ({}; held-out MDE: control refit {:.3} cm, as given {:.3} cm)",
                     d.verdict,
+                    if as_given {
+                        "model as given"
+                    } else {
+                        "control refit"
+                    },
                     backbone_path(dir).display(),
                     file.label(),
                     d.control.heldout_mde_cm,
                     d.backbone_as_given.mde_cm
                 );
-                if d.control.heldout_mde_cm > d.backbone_as_given.mde_cm {
-                    // Session 59: after `refine`, two cables' control refits lost to the
-                    // refined model they started from, on the held-out and the eval files.
-                    println!(
-                        "note: the control refit is worse than the model as given on the held-out episodes; \
-                         {} may be the better model to carry on with",
-                        args.run.display()
-                    );
-                }
             }
             if substep != backbone.substep {
                 // The refits' damping suits the rule they ran under, so the run keeps it.
@@ -771,6 +772,13 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
         }
     }
     Ok(d)
+}
+
+/// Whether the control refit (the model's own effects refitted on the train split, none
+/// added) predicts the held-out episodes better than the model as given: what `--write-run`
+/// carries on with when the verdict adds no effect.
+fn control_is_better(d: &gap::Diagnosis) -> bool {
+    d.control.heldout_mde_cm < d.backbone_as_given.mde_cm
 }
 
 #[cfg(test)]
@@ -1072,5 +1080,89 @@ mod tests {
             old
         );
         std::fs::remove_dir_all(&dir).ok();
+    }
+
+    /// With no effect to add, `--write-run` carries on with the better on the held-out
+    /// episodes of the control refit and the model as given: a model made worse is refitted,
+    /// and a one-generation refit does not replace the refit that beats it.
+    #[test]
+    fn write_run_keeps_the_better_of_the_control_refit_and_the_model_as_given() {
+        let dir = std::env::temp_dir().join(format!("pgrd-write-run-{}", std::process::id()));
+        let data = crate::cmd_fit::FIXTURE_ROPE;
+        let fit = crate::cmd_fit::FitArgs {
+            population: 6,
+            generations: 8,
+            samples: 3,
+            ..crate::cmd_fit::FitArgs::quick_rope_fixture(dir.join("fitted"))
+        };
+        crate::cmd_fit::run(&fit).unwrap();
+        let fitted = read_backbone(&dir.join("fitted")).unwrap();
+        let mut worse = fitted.clone();
+        worse.params.stiffness *= 0.3;
+        std::fs::create_dir_all(dir.join("worse")).unwrap();
+        write_json(&backbone_path(&dir.join("worse")), &worse).unwrap();
+        // The worse model refitted twice, then the written model diagnosed again with a
+        // one-generation refit, until one refit loses to the model it started from (the
+        // third round, with these seeds).
+        let mut kept = Vec::new();
+        let mut given_dir = dir.join("worse");
+        for (round, generations) in ["8", "8", "1", "1"].into_iter().enumerate() {
+            let out = dir.join(format!("out{round}"));
+            let written = dir.join(format!("written{round}"));
+            let argv = [
+                "diagnose",
+                "--data",
+                data,
+                "--run",
+                given_dir.to_str().unwrap(),
+                "--out",
+                out.to_str().unwrap(),
+                "--write-run",
+                written.to_str().unwrap(),
+                "--population",
+                "4",
+                "--generations",
+                generations,
+                "--samples",
+                "2",
+                "--resamples",
+                "50",
+                "--candidates",
+                "drag",
+                "--no-network",
+                "--quiet",
+            ];
+            let args = <Diag as clap::Parser>::try_parse_from(argv).unwrap().args;
+            let d = run_diagnosis(&args);
+            assert!(Candidate::parse(&d.verdict).is_err(), "{}", d.verdict);
+            let given = read_backbone(&given_dir).unwrap();
+            let file = read_backbone(&written).unwrap();
+            let as_given = file.params == given.params;
+            assert_eq!(as_given, !control_is_better(&d), "round {round}");
+            if !as_given {
+                assert_eq!(
+                    file.params,
+                    d.refitted_model(&given.params, None).unwrap().0
+                );
+            }
+            kept.push(as_given);
+            if as_given {
+                break;
+            }
+            given_dir = written;
+        }
+        // Both branches ran: the worse model lost to its refit, and a later refit lost to
+        // the model it started from.
+        assert_eq!(kept.first(), Some(&false));
+        assert_eq!(kept.last(), Some(&true), "{kept:?}");
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
+    /// Runs a diagnosis and reads back its report.
+    fn run_diagnosis(args: &DiagnoseArgs) -> Diagnosis {
+        run(args).unwrap();
+        let out = args.out.as_ref().expect("the test names --out");
+        let text = std::fs::read_to_string(out.join("report.json")).unwrap();
+        serde_json::from_str(&text).unwrap()
     }
 }
