@@ -6,6 +6,7 @@ use std::time::Instant;
 use anyhow::Context;
 use glam::Vec3;
 use plan::render::{Frame, render, view_bounds};
+use plan::{DEFAULT_GAINS, OnlinePgrd};
 use plan::{
     ForwardModel, LoopSettings, ModelState, Mppi, Pgrd, SpringMass, System, Task, TaskConfig,
     TaskKind, Trajectory, WorldOracle, run_closed_loop,
@@ -23,6 +24,10 @@ pub enum ModelArg {
     SpringMass,
     /// Backbone plus the run's residual network.
     Pgrd,
+    /// Backbone plus the run's residual network scaled by a gain (0, 0.5 or 1) chosen after
+    /// every executed step by how well each gain predicted the steps executed so far
+    /// (`plan::OnlinePgrd`; windows of the planning horizon).
+    PgrdOnline,
     /// The reference world itself, a perfect model: checks whether the planner can solve the
     /// task at all (not a model a user could have).
     World,
@@ -109,6 +114,9 @@ struct TrialReport {
     /// Per learned model: its prediction error along this trial's executed path (see
     /// [`path_error_cm`]), cm; null where the path was too short or a prediction failed.
     path_error_cm: std::collections::BTreeMap<&'static str, Option<f64>>,
+    /// `pgrd-online` only: the residual gain it planned with after each executed step.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    residual_gains: Option<Vec<f32>>,
 }
 
 /// One model's results.
@@ -154,9 +162,14 @@ pub fn run(args: &PlanArgs) -> anyhow::Result<()> {
     } else {
         args.model.clone()
     };
-    if models.contains(&ModelArg::Pgrd) && net.is_none() {
+    if let Some(m) = models
+        .iter()
+        .find(|m| matches!(m, ModelArg::Pgrd | ModelArg::PgrdOnline))
+        && net.is_none()
+    {
         anyhow::bail!(
-            "--model pgrd needs {} (run `cargo xtask train` first)",
+            "--model {} needs {} (run `cargo xtask train` first)",
+            model_name(*m),
             args.run.join("residual.safetensors").display()
         );
     }
@@ -195,6 +208,13 @@ pub fn run(args: &PlanArgs) -> anyhow::Result<()> {
             let (mut report, traj) = if m == ModelArg::World {
                 let oracle = WorldOracle::new(task.start.clone());
                 run_trial(&oracle, &mut oracle.system(), task, seed, args.max_steps)?
+            } else if let (ModelArg::PgrdOnline, Some(net)) = (m, &net) {
+                let bb = task_backbone(task, &backbone)?;
+                let model = OnlinePgrd::new(bb, net, &DEFAULT_GAINS, kind.mppi().horizon)?;
+                let mut world = task.start.clone();
+                let (mut report, traj) = run_trial(&model, &mut world, task, seed, args.max_steps)?;
+                report.residual_gains = Some(model.chosen_gains());
+                (report, traj)
             } else {
                 let bb = task_backbone(task, &backbone)?;
                 let model: Box<dyn ForwardModel> = match (m, &net) {
@@ -360,6 +380,7 @@ fn model_name(m: ModelArg) -> &'static str {
     match m {
         ModelArg::SpringMass => "spring-mass",
         ModelArg::Pgrd => "pgrd",
+        ModelArg::PgrdOnline => "pgrd-online",
         ModelArg::World => "world",
     }
 }
@@ -398,6 +419,7 @@ fn run_trial(
         replan_wall_s_mean: walls.iter().sum::<f64>() / walls.len().max(1) as f64,
         replan_wall_s_max: walls.iter().copied().fold(0.0, f64::max),
         path_error_cm: Default::default(),
+        residual_gains: None,
     };
     Ok((report, traj))
 }

@@ -140,6 +140,10 @@ pub fn run_closed_loop(
         out.chamfer_m.push(objective.chamfer(&obs)?);
         out.observed.push(obs);
         out.grippers.push(system.grippers());
+        if let Err(e) = model.observe_run(&out.observed, &out.grippers, settings.dt) {
+            out.stopped = Some(e.to_string());
+            break;
+        }
     }
     if !out.done && out.stopped.is_none() {
         let (obs, grip) = (

@@ -3,7 +3,8 @@
 //!
 //! PGRD's planning application (the paper's Section "Planning using PGRD"): a [`ForwardModel`]
 //! (the spring-mass backbone alone, [`SpringMass`], or with the residual network, [`Pgrd`];
-//! the world itself, [`WorldOracle`], as a perfect model for checking the planner and the tasks)
+//! the world itself, [`WorldOracle`], as a perfect model for checking the planner and the tasks;
+//! PGRD whose residual gain is chosen in closed loop from the observed steps, [`OnlinePgrd`])
 //! predicts what candidate gripper paths do to the object; [`Mppi`] samples candidates around
 //! its mean path, scores them with an [`Objective`] (Chamfer distance to a target point cloud
 //! plus workspace and obstacle penalties) and moves the mean towards the cheap ones.
@@ -32,6 +33,7 @@ mod error;
 mod model;
 mod mppi;
 mod nearest;
+mod online;
 mod oracle;
 pub mod render;
 mod task;
@@ -41,5 +43,6 @@ pub use cost::{CostMode, Objective, Workspace};
 pub use error::{PlanError, Result};
 pub use model::{ForwardModel, ModelState, Pgrd, SpringMass};
 pub use mppi::{Mppi, MppiConfig, PlanStep};
+pub use online::{DEFAULT_GAINS, OnlinePgrd};
 pub use oracle::{OracleSystem, WorldOracle};
 pub use task::{Slot, Task, TaskConfig, TaskKind};

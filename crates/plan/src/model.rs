@@ -130,6 +130,15 @@ pub trait ForwardModel: Sync {
     }
     /// A short name for reports ("spring-mass", "pgrd").
     fn name(&self) -> &str;
+    /// Hears what the system did, after every executed step of [`crate::run_closed_loop`]:
+    /// `observed` holds the observed points at the start and after each step so far,
+    /// `grippers` the gripper positions at the same times, `dt` seconds apart. Models that
+    /// adapt to the system they control ([`crate::OnlinePgrd`]) learn from it; the default
+    /// ignores it. An `Err` ends the closed loop (recorded, not raised).
+    fn observe_run(&self, observed: &[Vec<Vec3>], grippers: &[Vec<Vec3>], dt: f32) -> Result<()> {
+        let _ = (observed, grippers, dt);
+        Ok(())
+    }
 }
 
 /// The spring-mass backbone alone.
@@ -156,13 +165,7 @@ impl ForwardModel for SpringMass {
     }
 
     fn rollout(&self, state: &ModelState, actions: &Actions) -> Result<Vec<Vec<Vec3>>> {
-        let init = State {
-            x: state.x.clone(),
-            v: state.v.clone(),
-        };
-        let mut out = self.backbone.rollout(&init, actions)?;
-        out.positions.remove(0);
-        Ok(out.positions)
+        backbone_rollout(&self.backbone, state, actions)
     }
 
     fn name(&self) -> &str {
@@ -196,17 +199,7 @@ impl ForwardModel for Pgrd {
     }
 
     fn rollout(&self, state: &ModelState, actions: &Actions) -> Result<Vec<Vec<Vec3>>> {
-        let init = State {
-            x: state.x.clone(),
-            v: state.v.clone(),
-        };
-        let history = residual::History {
-            x: state.past_x.clone(),
-            v: state.past_v.clone(),
-        };
-        let steps = actions.num_frames().saturating_sub(1);
-        residual::predict(&self.net, &self.backbone, &init, &history, actions, steps)
-            .map_err(|e| PlanError::Model(e.to_string()))
+        hybrid_rollout(&self.backbone, &self.net, state, actions)
     }
 
     /// All candidates through [`residual::predict_batch`]: one network call per step on all
@@ -218,41 +211,86 @@ impl ForwardModel for Pgrd {
         state: &ModelState,
         actions: &[Actions],
     ) -> Vec<Result<Vec<Vec<Vec3>>>> {
-        let init = State {
-            x: state.x.clone(),
-            v: state.v.clone(),
-        };
-        let history = residual::History {
-            x: state.past_x.clone(),
-            v: state.past_v.clone(),
-        };
-        let jobs: Vec<residual::PredictJob<'_>> = actions
-            .iter()
-            .map(|a| residual::PredictJob {
-                backbone: &self.backbone,
-                init: &init,
-                history: &history,
-                actions: a,
-                steps: a.num_frames().saturating_sub(1),
-            })
-            .collect();
-        match residual::predict_batch(&self.net, &jobs) {
-            Ok(out) => out
-                .into_iter()
-                .map(|r| r.map_err(|e| PlanError::Model(e.to_string())))
-                .collect(),
-            // The network evaluation itself failed: no candidate has a prediction.
-            Err(e) => {
-                let msg = e.to_string();
-                actions
-                    .iter()
-                    .map(|_| Err(PlanError::Model(msg.clone())))
-                    .collect()
-            }
-        }
+        hybrid_batch(&self.backbone, &self.net, state, actions)
     }
 
     fn name(&self) -> &str {
         "pgrd"
+    }
+}
+
+/// The backbone alone from `state` (positions after each step).
+pub(crate) fn backbone_rollout(
+    backbone: &Backbone,
+    state: &ModelState,
+    actions: &Actions,
+) -> Result<Vec<Vec<Vec3>>> {
+    let init = State {
+        x: state.x.clone(),
+        v: state.v.clone(),
+    };
+    let mut out = backbone.rollout(&init, actions)?;
+    out.positions.remove(0);
+    Ok(out.positions)
+}
+
+/// Backbone and network from `state` and its history (positions after each step).
+pub(crate) fn hybrid_rollout(
+    backbone: &Backbone,
+    net: &residual::ResidualNet,
+    state: &ModelState,
+    actions: &Actions,
+) -> Result<Vec<Vec<Vec3>>> {
+    let init = State {
+        x: state.x.clone(),
+        v: state.v.clone(),
+    };
+    let history = residual::History {
+        x: state.past_x.clone(),
+        v: state.past_v.clone(),
+    };
+    let steps = actions.num_frames().saturating_sub(1);
+    residual::predict(net, backbone, &init, &history, actions, steps)
+        .map_err(|e| PlanError::Model(e.to_string()))
+}
+
+/// [`hybrid_rollout`] for every candidate, the network evaluated on all of them at once.
+pub(crate) fn hybrid_batch(
+    backbone: &Backbone,
+    net: &residual::ResidualNet,
+    state: &ModelState,
+    actions: &[Actions],
+) -> Vec<Result<Vec<Vec<Vec3>>>> {
+    let init = State {
+        x: state.x.clone(),
+        v: state.v.clone(),
+    };
+    let history = residual::History {
+        x: state.past_x.clone(),
+        v: state.past_v.clone(),
+    };
+    let jobs: Vec<residual::PredictJob<'_>> = actions
+        .iter()
+        .map(|a| residual::PredictJob {
+            backbone,
+            init: &init,
+            history: &history,
+            actions: a,
+            steps: a.num_frames().saturating_sub(1),
+        })
+        .collect();
+    match residual::predict_batch(net, &jobs) {
+        Ok(out) => out
+            .into_iter()
+            .map(|r| r.map_err(|e| PlanError::Model(e.to_string())))
+            .collect(),
+        // The network evaluation itself failed: no candidate has a prediction.
+        Err(e) => {
+            let msg = e.to_string();
+            actions
+                .iter()
+                .map(|_| Err(PlanError::Model(msg.clone())))
+                .collect()
+        }
     }
 }

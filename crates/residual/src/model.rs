@@ -300,6 +300,43 @@ impl ResidualNet {
         Ok(copy)
     }
 
+    /// A copy of this network whose residual is `gain` times its own (`gain` finite and
+    /// ≥ 0; 0 gives [`ResidualNet::without_residual`]): every parameter is copied and the
+    /// bound `residual_scale` multiplied by `gain`, which scales `Δ` and nothing else. A
+    /// planner that sees how the system responds can choose how far to trust the network
+    /// (`plan::OnlinePgrd`).
+    ///
+    /// ```
+    /// use residual::{ModelConfig, ResidualNet};
+    /// let net = ResidualNet::new(&ModelConfig::tiny(), 1)?;
+    /// let half = net.with_residual_gain(0.5)?;
+    /// assert_eq!(half.config().residual_scale, 0.5 * net.config().residual_scale);
+    /// assert!(net.with_residual_gain(-1.0).is_err());
+    /// # Ok::<(), residual::ResidualError>(())
+    /// ```
+    pub fn with_residual_gain(&self, gain: f32) -> Result<ResidualNet> {
+        if !(gain.is_finite() && gain >= 0.0) {
+            return Err(ResidualError::Config(format!(
+                "residual gain {gain}: must be finite and >= 0"
+            )));
+        }
+        if gain == 0.0 {
+            return self.without_residual();
+        }
+        let cfg = ModelConfig {
+            residual_scale: self.cfg.residual_scale * gain,
+            ..self.cfg.clone()
+        };
+        let copy = ResidualNet::new(&cfg, 0)?;
+        let own: std::collections::HashMap<String, Var> = self.named_vars().into_iter().collect();
+        for (name, var) in copy.named_vars() {
+            if let Some(src) = own.get(&name) {
+                var.set(src.as_tensor())?;
+            }
+        }
+        Ok(copy)
+    }
+
     /// The configuration.
     pub fn config(&self) -> &ModelConfig {
         &self.cfg

@@ -228,6 +228,36 @@ fn a_network_without_residual_is_the_backbone() {
     }
 }
 
+/// A residual gain scales the first step's residual and nothing else: half the gain, half
+/// the first step's offset from the backbone.
+#[test]
+fn a_residual_gain_scales_the_residual() {
+    let (_, _, scene, history, bb) = common::scene("rope", 1);
+    let opts = RolloutOptions {
+        steps: 1,
+        ..Default::default()
+    };
+    let sim = bb.rollout(&scene.init, &scene.actions).unwrap().positions;
+    let net = ResidualNet::new(&ModelConfig::tiny(), 7).unwrap();
+    let offsets = |gain: f32| -> Vec<Vec3> {
+        let scaled = net.with_residual_gain(gain).unwrap();
+        let out = hybrid_rollout(&scaled, &bb, &scene, &history, opts).unwrap();
+        out.positions[0]
+            .iter()
+            .zip(&sim[1])
+            .map(|(a, b)| *a - *b)
+            .collect()
+    };
+    let (full, half, none) = (offsets(1.0), offsets(0.5), offsets(0.0));
+    let largest = full.iter().map(|d| d.length()).fold(0.0f32, f32::max);
+    assert!(largest > 0.0);
+    for (f, h) in full.iter().zip(&half) {
+        assert!((*f * 0.5 - *h).length() <= 1e-2 * largest, "{f} vs {h}");
+    }
+    assert!(none.iter().all(|d| *d == Vec3::ZERO));
+    assert!(net.with_residual_gain(f32::NAN).is_err());
+}
+
 /// An untrained network adds about the same residual whatever its bound (its output layers
 /// start smaller by 0.1 / bound), so a step-0 network stays near the backbone; at the paper's
 /// bound the draw is unchanged.
