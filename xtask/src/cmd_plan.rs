@@ -111,6 +111,9 @@ struct TrialReport {
     failed_rollouts: usize,
     replan_wall_s_mean: f64,
     replan_wall_s_max: f64,
+    /// Mean wall time per step the model took to learn from the executed step (`pgrd-online`;
+    /// about 0 for the others), s.
+    observe_wall_s_mean: f64,
     /// Per learned model: its prediction error along this trial's executed path (see
     /// [`path_error_cm`]), cm; null where the path was too short or a prediction failed.
     path_error_cm: std::collections::BTreeMap<&'static str, Option<f64>>,
@@ -231,8 +234,17 @@ pub fn run(args: &PlanArgs) -> anyhow::Result<()> {
                     path_error_cm(scorer.as_ref(), &traj, kind.mppi().horizon),
                 );
             }
+            let gains = report.residual_gains.as_ref().map_or(String::new(), |g| {
+                let at = |x: f32| g.iter().filter(|&&v| v == x).count();
+                format!(
+                    "; residual gain 0 / 0.5 / 1 in {} / {} / {} steps",
+                    at(0.0),
+                    at(0.5),
+                    at(1.0)
+                )
+            });
             eprintln!(
-                "{kind} {} trial {t}: {} in {} steps, final Chamfer {:.2} cm, {:.2} s per replan",
+                "{kind} {} trial {t}: {} in {} steps, final Chamfer {:.2} cm, {:.2} s per replan{gains}",
                 model_name(m),
                 if report.success { "success" } else { "failure" },
                 report.steps,
@@ -418,6 +430,8 @@ fn run_trial(
         failed_rollouts: traj.replans.iter().map(|r| r.failed).sum(),
         replan_wall_s_mean: walls.iter().sum::<f64>() / walls.len().max(1) as f64,
         replan_wall_s_max: walls.iter().copied().fold(0.0, f64::max),
+        observe_wall_s_mean: traj.replans.iter().map(|r| r.observe_wall_s).sum::<f64>()
+            / walls.len().max(1) as f64,
         path_error_cm: Default::default(),
         residual_gains: None,
     };

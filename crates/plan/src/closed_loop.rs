@@ -58,6 +58,9 @@ pub struct ReplanStats {
     pub failed: usize,
     /// Candidate rollouts run.
     pub rollouts: usize,
+    /// Wall time the model then took to hear what the executed step did
+    /// ([`ForwardModel::observe_run`]; about 0 for models that ignore it), s.
+    pub observe_wall_s: f64,
 }
 
 /// What happened in one closed-loop run.
@@ -131,6 +134,7 @@ pub fn run_closed_loop(
             best_cost: step.best_cost.last().copied().unwrap_or(f64::INFINITY),
             failed: step.failed,
             rollouts: step.rollouts,
+            observe_wall_s: 0.0,
         });
         if let Err(e) = system.step(&step.next) {
             out.stopped = Some(e.to_string());
@@ -140,7 +144,12 @@ pub fn run_closed_loop(
         out.chamfer_m.push(objective.chamfer(&obs)?);
         out.observed.push(obs);
         out.grippers.push(system.grippers());
-        if let Err(e) = model.observe_run(&out.observed, &out.grippers, settings.dt) {
+        let t1 = Instant::now();
+        let heard = model.observe_run(&out.observed, &out.grippers, settings.dt);
+        if let Some(last) = out.replans.last_mut() {
+            last.observe_wall_s = t1.elapsed().as_secs_f64();
+        }
+        if let Err(e) = heard {
             out.stopped = Some(e.to_string());
             break;
         }
