@@ -26,7 +26,7 @@ pub const DEFAULT_GAINS: [f32; 3] = [0.0, 0.5, 1.0];
 /// `window` steps back (fewer at the start of a run) to the newest observation, from the
 /// observed frames and the executed gripper positions (grippers closed, as the planner drives
 /// them); its mean distance per particle and step joins its running sum, and the gain with
-/// the smallest sum (the smaller gain on ties) plans the next step. Until the first step has
+/// the smallest sum (the first in the list on ties) plans the next step. Until the first step has
 /// been observed it plans with gain 1 (the network as trained) if that is among the gains,
 /// else with the largest. A run that starts again (fewer observed frames than already
 /// scored) starts the sums again; [`OnlinePgrd::reset`] does so explicitly.
