@@ -139,3 +139,40 @@ fn bad_settings_are_refused() {
             .is_err()
     );
 }
+
+/// Against the reference world, the gains chosen and the executed path do not depend on how
+/// many threads evaluate the candidates.
+#[test]
+fn the_choice_does_not_depend_on_the_thread_count() {
+    let task = task();
+    let net = network();
+    let in_pool = |threads: usize| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap()
+            .install(|| {
+                let model = OnlinePgrd::new(backbone(&task), &net, &DEFAULT_GAINS, 3).unwrap();
+                let mut world = task.start.clone();
+                let mut mppi = Mppi::new(TaskKind::RopeLift.mppi(), 1).unwrap();
+                let settings = LoopSettings {
+                    max_steps: 5,
+                    dt: DT,
+                };
+                let objective = task.objective().unwrap();
+                let traj = run_closed_loop(
+                    &model,
+                    &mut world,
+                    &mut mppi,
+                    &objective,
+                    settings,
+                    &|_, _| false,
+                )
+                .unwrap();
+                (traj.observed, model.chosen_gains(), model.mean_errors_m())
+            })
+    };
+    let (a, b) = (in_pool(1), in_pool(2));
+    assert_eq!(a.1.len(), 5);
+    assert_eq!(a, b);
+}
