@@ -131,8 +131,8 @@ pub struct DiagnoseArgs {
     pub write_run: Option<PathBuf>,
     /// How the simulator chooses its substep in every rollout of the diagnosis (the backbone
     /// as given included): every contender is refitted and compared under it. Default: the
-    /// run's own, unless `--budget-min` chooses `spectral`. `--write-run` records it in the
-    /// model it writes.
+    /// run's own, unless `--budget-min` chooses `spectral`. `--write-run` records it in a
+    /// refitted model it writes (a model carried on as given keeps its own).
     #[arg(long, value_enum)]
     pub substep: Option<SubstepArg>,
     /// Print only the verdict line.
@@ -736,7 +736,11 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
                 file.effects = effects;
             }
             file.protocol = protocol.name().to_string();
-            file.substep = substep;
+            if !as_given {
+                // The refits' damping suits the rule they ran under, so the run keeps it; a
+                // model carried on as given keeps its own.
+                file.substep = substep;
+            }
             std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
             write_json(&backbone_path(dir), &file)?;
             if added.is_some() {
@@ -760,8 +764,7 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
                     d.backbone_as_given.mde_cm
                 );
             }
-            if substep != backbone.substep {
-                // The refits' damping suits the rule they ran under, so the run keeps it.
+            if file.substep != backbone.substep {
                 println!(
                     "note: the run is written with the {} substep rule (the run diagnosed used {}): \
                      its parameters were refitted under it",
@@ -1139,6 +1142,10 @@ mod tests {
             let file = read_backbone(&written).unwrap();
             let as_given = file.params == given.params;
             assert_eq!(as_given, !control_is_better(&d), "round {round}");
+            if as_given {
+                assert_eq!(file.substep, given.substep);
+                assert_eq!(file.effects.len(), given.effects.len());
+            }
             if !as_given {
                 assert_eq!(
                     file.params,

@@ -109,8 +109,9 @@ pub struct TrainArgs {
     /// over their full evaluation windows: the backbone itself (the step-0 network without its
     /// residual; with --init-from, that network), replaced at each evaluation (every
     /// --select-every steps and at the end) by one that beats the current choice by more than
-    /// one standard error of the paired per-episode differences; the choice is written to residual.safetensors (0: no selection, the last
-    /// network is written). The val split is never used. See docs/residual.md.
+    /// one standard error of the paired per-episode differences; the choice is written to
+    /// residual.safetensors (0: no selection, the last network is written). The val split is
+    /// never used. See docs/residual.md.
     #[arg(long, default_value_t = 0)]
     pub holdout: usize,
     /// With --holdout: evaluate the held-out rollout MDE every this many optimiser steps
