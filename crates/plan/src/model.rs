@@ -234,13 +234,8 @@ pub(crate) fn backbone_rollout(
     Ok(out.positions)
 }
 
-/// Backbone and network from `state` and its history (positions after each step).
-pub(crate) fn hybrid_rollout(
-    backbone: &Backbone,
-    net: &residual::ResidualNet,
-    state: &ModelState,
-    actions: &Actions,
-) -> Result<Vec<Vec<Vec3>>> {
+/// The network's start: the state now and the two frames before.
+fn start(state: &ModelState) -> (State, residual::History) {
     let init = State {
         x: state.x.clone(),
         v: state.v.clone(),
@@ -249,6 +244,17 @@ pub(crate) fn hybrid_rollout(
         x: state.past_x.clone(),
         v: state.past_v.clone(),
     };
+    (init, history)
+}
+
+/// Backbone and network from `state` and its history (positions after each step).
+pub(crate) fn hybrid_rollout(
+    backbone: &Backbone,
+    net: &residual::ResidualNet,
+    state: &ModelState,
+    actions: &Actions,
+) -> Result<Vec<Vec<Vec3>>> {
+    let (init, history) = start(state);
     let steps = actions.num_frames().saturating_sub(1);
     residual::predict(net, backbone, &init, &history, actions, steps)
         .map_err(|e| PlanError::Model(e.to_string()))
@@ -261,14 +267,7 @@ pub(crate) fn hybrid_batch(
     state: &ModelState,
     actions: &[Actions],
 ) -> Vec<Result<Vec<Vec<Vec3>>>> {
-    let init = State {
-        x: state.x.clone(),
-        v: state.v.clone(),
-    };
-    let history = residual::History {
-        x: state.past_x.clone(),
-        v: state.past_v.clone(),
-    };
+    let (init, history) = start(state);
     let jobs: Vec<residual::PredictJob<'_>> = actions
         .iter()
         .map(|a| residual::PredictJob {

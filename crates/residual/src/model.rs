@@ -287,11 +287,17 @@ impl ResidualNet {
     /// # Ok::<(), residual::ResidualError>(())
     /// ```
     pub fn without_residual(&self) -> Result<ResidualNet> {
-        let copy = ResidualNet::new(&self.cfg, 0)?;
+        self.copy_as(self.cfg.clone(), true)
+    }
+
+    /// A network of configuration `cfg` (this one's but for the bound) holding this one's
+    /// parameters, with the residual-valued output layers zeroed when `silence_output`.
+    fn copy_as(&self, cfg: ModelConfig, silence_output: bool) -> Result<ResidualNet> {
+        let copy = ResidualNet::new(&cfg, 0)?;
         let own: std::collections::HashMap<String, Var> = self.named_vars().into_iter().collect();
         for (name, var) in copy.named_vars() {
             let layer = name.rsplit_once('.').map_or(name.as_str(), |(l, _)| l);
-            if layer.ends_with(".out") {
+            if silence_output && layer.ends_with(".out") {
                 var.set(&var.as_tensor().zeros_like()?)?;
             } else if let Some(src) = own.get(&name) {
                 var.set(src.as_tensor())?;
@@ -327,14 +333,7 @@ impl ResidualNet {
             residual_scale: self.cfg.residual_scale * gain,
             ..self.cfg.clone()
         };
-        let copy = ResidualNet::new(&cfg, 0)?;
-        let own: std::collections::HashMap<String, Var> = self.named_vars().into_iter().collect();
-        for (name, var) in copy.named_vars() {
-            if let Some(src) = own.get(&name) {
-                var.set(src.as_tensor())?;
-            }
-        }
-        Ok(copy)
+        self.copy_as(cfg, false)
     }
 
     /// The configuration.
