@@ -21,7 +21,7 @@ mod bench;
 pub use bench::{DiagnoseBenchArgs, run_bench};
 
 /// Arguments of `diagnose`.
-#[derive(clap::Args)]
+#[derive(clap::Args, Clone, Debug)]
 pub struct DiagnoseArgs {
     /// Dataset directory (train split for refits, val split held out).
     #[arg(long)]
@@ -780,7 +780,7 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
 /// Whether the control refit (the model's own effects refitted on the train split, none
 /// added) predicts the held-out episodes better than the model as given: what `--write-run`
 /// carries on with when the verdict adds no effect.
-fn control_is_better(d: &gap::Diagnosis) -> bool {
+pub(crate) fn control_is_better(d: &gap::Diagnosis) -> bool {
     d.control.heldout_mde_cm < d.backbone_as_given.mde_cm
 }
 

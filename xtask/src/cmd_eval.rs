@@ -122,7 +122,6 @@ fn summary(curves: &[Vec<f64>], convention: &'static str) -> anyhow::Result<(Sum
     ))
 }
 
-/// Evaluates the run's model and writes the JSON report and the plot.
 /// File name (without extension) of an evaluation's default outputs: the backbone's keep the
 /// historical `eval_<split>`, PGRD's get the model name so one run directory holds both.
 fn stem(model_name: &str, split: Split) -> String {
@@ -133,6 +132,7 @@ fn stem(model_name: &str, split: Split) -> String {
     }
 }
 
+/// Evaluates the run's model and writes the JSON report and the plot.
 pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
     let t0 = Instant::now();
     let data = Dataset::open(&args.data)?;

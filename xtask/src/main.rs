@@ -8,6 +8,7 @@ use clap::{Parser, Subcommand};
 #[global_allocator]
 static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
+mod cmd_chain;
 mod cmd_compare;
 mod cmd_demo;
 mod cmd_diagnose;
@@ -40,6 +41,9 @@ enum Command {
     Gen(cmd_gen::GenArgs),
     /// Diagnose the sim-to-real gap of a fitted run: where, which effect, how far it shrinks.
     Diagnose(cmd_diagnose::DiagnoseArgs),
+    /// Diagnose again and again, each round adding the effect its verdict names, until `none` /
+    /// `unknown` or `--max-rounds`; resumable; scores the start and final models on `test`.
+    Chain(cmd_chain::ChainArgs),
     /// Write a diagnosis's report.html again from its report.json (this version's page).
     ReportPage(cmd_diagnose::ReportPageArgs),
     /// Check the diagnosis on reference-world data with withheld effects.
@@ -75,6 +79,7 @@ fn main() -> anyhow::Result<()> {
         Command::Gen(args) => cmd_gen::run(&args),
         Command::Diagnose(args) if args.estimate => cmd_diagnose::estimate(&args),
         Command::Diagnose(args) => cmd_diagnose::run(&args).map(drop),
+        Command::Chain(args) => cmd_chain::run(&args).map(drop),
         Command::ReportPage(args) => cmd_diagnose::report_page(&args),
         Command::DiagnoseBench(args) => cmd_diagnose::run_bench(&args).map(drop),
         Command::Fit(args) => cmd_fit::run(&args).map(drop),

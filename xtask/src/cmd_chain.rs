@@ -1,0 +1,578 @@
+//! `cargo xtask chain`: the user's diagnosis rounds in one resumable command. Each round
+//! diagnoses the model the round before wrote (`diagnose --write-run`), so each adds at most
+//! the effect its verdict names; the chain stops at the first `none` / `unknown` or at
+//! `--max-rounds`, and scores the model it started from and the one it ends with once on the
+//! dataset's `test` split when there is one (`cargo xtask dev-split`). `docs/gap.md`, "Chains
+//! of diagnoses".
+
+use std::path::{Path, PathBuf};
+
+use anyhow::Context;
+use dataset::{Dataset, Split};
+use gap::{Candidate, Diagnosis};
+use serde::{Deserialize, Serialize};
+
+use crate::cmd_diagnose::{self, DiagnoseArgs};
+use crate::cmd_eval::{self, EvalArgs};
+use crate::common::{backbone_path, read_backbone};
+use crate::report::write_json;
+
+/// Arguments of `chain`: those of `diagnose`, applied to every round, and the round limit.
+/// `--out` names the chain's directory (`round-<k>/` holds round k's report and, in `run/`,
+/// the model it wrote; `chain.json` the rounds so far), `--write-run` where the final model is
+/// also written, and `--with` the base effects of the first round only (later rounds take
+/// theirs from the run they diagnose).
+#[derive(clap::Args)]
+pub struct ChainArgs {
+    #[command(flatten)]
+    pub diagnose: DiagnoseArgs,
+    /// Most diagnosis rounds; each adds at most one effect. A chain stopped at this limit goes
+    /// on from its last round when run again with a larger one.
+    #[arg(long, default_value_t = 4)]
+    pub max_rounds: usize,
+}
+
+/// `<out>/chain.json`: what each round did, written after every round, so an interrupted
+/// chain resumes after its last complete round.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct ChainFile {
+    /// Dataset directory, as given.
+    pub data: String,
+    /// The run the chain started from, as given.
+    pub run: String,
+    /// Every diagnosis setting but the output paths (a chain resumes only with the same).
+    pub settings: String,
+    /// Rounds so far, in order.
+    pub rounds: Vec<ChainRound>,
+    /// Why the chain stopped (absent while it can go on).
+    pub stopped: Option<String>,
+    /// The model the chain ends with: the last round's written run.
+    pub final_run: Option<String>,
+    /// The model as given and the final model on the `test` split, when the dataset has one.
+    pub test: Option<TestScores>,
+}
+
+/// One round of a chain.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ChainRound {
+    /// 1, 2, …
+    pub round: usize,
+    /// The run diagnosed.
+    pub diagnosed_run: String,
+    /// Its model (`spring-mass+drag`, …).
+    pub model_diagnosed: String,
+    /// The verdict: an effect, `none` or `unknown`.
+    pub verdict: String,
+    /// Held-out MDE shrinkage of the verdict's candidate (the probe's for `unknown`) against
+    /// the control refit, with its 95 % interval; absent for `none`.
+    pub shrinkage: Option<f64>,
+    /// 95 % bootstrap interval of `shrinkage`.
+    pub ci95: Option<[f64; 2]>,
+    /// Held-out MDE of the model diagnosed, as given, cm.
+    pub heldout_mde_as_given_cm: f64,
+    /// Held-out MDE of the model the round wrote, cm.
+    pub heldout_mde_written_cm: f64,
+    /// What the round wrote: `with <effect>`, `control refit` or `as given`.
+    pub written: String,
+    /// The run it wrote.
+    pub written_run: String,
+    /// Its model.
+    pub model_written: String,
+    /// Speed options the diagnosis's time budget chose (empty: none).
+    pub budget_options: String,
+    /// Wall time of the round, s.
+    pub wall_s: f64,
+}
+
+/// The chain's start and end models on the `test` split (scored once, after the rounds).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct TestScores {
+    /// Test episodes.
+    pub episodes: usize,
+    /// MDE of the model the chain started from, cm.
+    pub mde_as_given_cm: f64,
+    /// MDE of the final model, cm.
+    pub mde_final_cm: f64,
+    /// `1 − final / as given`.
+    pub shrinkage: f64,
+}
+
+/// Runs `chain`.
+pub fn run(args: &ChainArgs) -> anyhow::Result<ChainFile> {
+    let d = &args.diagnose;
+    anyhow::ensure!(
+        !d.estimate,
+        "chain runs diagnoses; use `diagnose --estimate` to estimate one"
+    );
+    anyhow::ensure!(args.max_rounds >= 1, "--max-rounds must be at least 1");
+    let out = d
+        .out
+        .as_deref()
+        .context("--out names the chain's directory")?;
+    if let Some(dir) = &d.write_run {
+        anyhow::ensure!(
+            !dir.starts_with(out),
+            "--write-run {} is inside the chain's directory; name a directory outside it",
+            dir.display()
+        );
+    }
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    let path = out.join("chain.json");
+    let settings = settings_of(d);
+    let mut chain = if path.exists() {
+        let text = std::fs::read_to_string(&path)
+            .with_context(|| format!("reading {}", path.display()))?;
+        let chain: ChainFile = serde_json::from_str(&text)
+            .with_context(|| format!("{} is not a chain's record", path.display()))?;
+        anyhow::ensure!(
+            chain.settings == settings,
+            "{} holds a chain of other data, run or diagnosis settings ({} from {}); \
+             resume it with the same ones, or name another --out",
+            out.display(),
+            chain.data,
+            chain.run
+        );
+        if !chain.rounds.is_empty() && !d.quiet {
+            println!(
+                "resuming the chain in {}: {} round(s) done",
+                out.display(),
+                chain.rounds.len()
+            );
+        }
+        chain
+    } else {
+        ChainFile {
+            data: d.data.display().to_string(),
+            run: d.run.display().to_string(),
+            settings,
+            rounds: Vec::new(),
+            stopped: None,
+            final_run: None,
+            test: None,
+        }
+    };
+    while chain.rounds.len() < args.max_rounds
+        && chain.rounds.last().is_none_or(|r| adds_effect(&r.verdict))
+    {
+        let k = chain.rounds.len() + 1;
+        let round = run_round(d, out, k, chain.rounds.last(), args.max_rounds)?;
+        chain.rounds.push(round);
+        chain.stopped = None;
+        chain.final_run = chain.rounds.last().map(|r| r.written_run.clone());
+        chain.test = None;
+        write_json(&path, &chain)?;
+    }
+    let last = chain.rounds.last().context("the chain ran no round")?;
+    chain.stopped = Some(if adds_effect(&last.verdict) {
+        format!(
+            "round limit {}: round {} still added {}; run the chain again with a larger \
+             --max-rounds to go on",
+            args.max_rounds, last.round, last.verdict
+        )
+    } else {
+        format!(
+            "round {}: verdict {}, no effect left to add",
+            last.round, last.verdict
+        )
+    });
+    let final_run = PathBuf::from(&last.written_run);
+    if let Some(dir) = &d.write_run {
+        let file = read_backbone(&final_run)?;
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+        anyhow::ensure!(
+            !dir.join("residual.safetensors").exists(),
+            "--write-run {}: it holds a residual network trained on another backbone; name a new directory",
+            dir.display()
+        );
+        write_json(&backbone_path(dir), &file)?;
+    }
+    chain.test = test_scores(d, out, &final_run)?;
+    write_json(&path, &chain)?;
+    print_summary(&chain, d);
+    Ok(chain)
+}
+
+/// Whether a verdict names an effect the next round's model has.
+fn adds_effect(verdict: &str) -> bool {
+    Candidate::parse(verdict).is_ok()
+}
+
+/// The diagnosis settings a chain must resume with: every argument but the output paths and
+/// the printing.
+fn settings_of(d: &DiagnoseArgs) -> String {
+    let mut s = d.clone();
+    s.out = None;
+    s.write_run = None;
+    s.quiet = false;
+    format!("{s:?}")
+}
+
+/// Diagnoses round `k`'s model (the run given, or the model the round before wrote) and
+/// writes the model it refitted to `<out>/round-<k>/run`.
+fn run_round(
+    d: &DiagnoseArgs,
+    out: &Path,
+    k: usize,
+    before: Option<&ChainRound>,
+    max_rounds: usize,
+) -> anyhow::Result<ChainRound> {
+    let dir = out.join(format!("round-{k}"));
+    let written = dir.join("run");
+    let diagnosed = before.map_or_else(|| d.run.clone(), |r| PathBuf::from(&r.written_run));
+    let given = read_backbone(&diagnosed)?;
+    if !d.quiet {
+        println!(
+            "== chain round {k} (at most {max_rounds}): diagnosing {} ({})",
+            given.label(),
+            diagnosed.display()
+        );
+    }
+    let round_args = DiagnoseArgs {
+        run: diagnosed.clone(),
+        out: Some(dir.clone()),
+        write_run: Some(written.clone()),
+        // The first round's base effects as the user named them; later rounds take the
+        // model the round before wrote, effects and all.
+        with: if k == 1 { d.with.clone() } else { None },
+        ..d.clone()
+    };
+    let diagnosis = cmd_diagnose::run(&round_args)?;
+    let model_written = read_backbone(&written)?.label();
+    Ok(round_record(
+        k,
+        &diagnosis,
+        &diagnosed,
+        given.label(),
+        &written,
+        model_written,
+    ))
+}
+
+/// What a round did, from its diagnosis.
+fn round_record(
+    k: usize,
+    diagnosis: &Diagnosis,
+    diagnosed: &Path,
+    model_diagnosed: String,
+    written_run: &Path,
+    model_written: String,
+) -> ChainRound {
+    let verdict = diagnosis.verdict.clone();
+    let ranked = if verdict == "unknown" {
+        diagnosis.probe.as_ref()
+    } else {
+        diagnosis.ranking.iter().find(|r| r.effect == verdict)
+    };
+    let (written, heldout_written) = if adds_effect(&verdict) {
+        let after = (diagnosis.how_far.as_ref()).map_or(f64::NAN, |h| h.after.mde_cm);
+        (format!("with {verdict}"), after)
+    } else if cmd_diagnose::control_is_better(diagnosis) {
+        (
+            "control refit".to_string(),
+            diagnosis.control.heldout_mde_cm,
+        )
+    } else {
+        ("as given".to_string(), diagnosis.backbone_as_given.mde_cm)
+    };
+    ChainRound {
+        round: k,
+        diagnosed_run: diagnosed.display().to_string(),
+        model_diagnosed,
+        verdict,
+        shrinkage: ranked.map(|r| r.shrinkage),
+        ci95: ranked.map(|r| r.ci95),
+        heldout_mde_as_given_cm: diagnosis.backbone_as_given.mde_cm,
+        heldout_mde_written_cm: heldout_written,
+        written,
+        written_run: written_run.display().to_string(),
+        model_written,
+        budget_options: (diagnosis.budget.as_ref()).map_or(String::new(), |b| b.options.clone()),
+        wall_s: diagnosis.wall_s,
+    }
+}
+
+/// The model the chain started from and the final one, scored once on the `test` split when
+/// the dataset has one; reports in `<out>/eval_test_{as_given,final}.json`.
+fn test_scores(
+    d: &DiagnoseArgs,
+    out: &Path,
+    final_run: &Path,
+) -> anyhow::Result<Option<TestScores>> {
+    let data = Dataset::open(&d.data)?;
+    let episodes = data.split_indices(Split::Test).len();
+    if episodes == 0 {
+        return Ok(None);
+    }
+    let mde = |run: &Path, name: &str| -> anyhow::Result<f64> {
+        let report = cmd_eval::run(&EvalArgs {
+            data: d.data.clone(),
+            run: run.to_path_buf(),
+            split: Split::Test,
+            protocol: d.protocol,
+            json: Some(out.join(format!("eval_test_{name}.json"))),
+            plot: Some(out.join(format!("eval_test_{name}.svg"))),
+            no_emd: false,
+            visual: false,
+        })?;
+        report.metrics["mde_cm"]["mean"]
+            .as_f64()
+            .context("an eval report without its MDE")
+    };
+    let before = mde(&d.run, "as_given")?;
+    let after = mde(final_run, "final")?;
+    Ok(Some(TestScores {
+        episodes,
+        mde_as_given_cm: before,
+        mde_final_cm: after,
+        shrinkage: 1.0 - after / before,
+    }))
+}
+
+fn print_summary(chain: &ChainFile, d: &DiagnoseArgs) {
+    println!("chain of diagnoses on {} from {}:", chain.data, chain.run);
+    println!(
+        "  round  verdict                    shrinkage [95 %]        held-out MDE, cm: as given -> written  wrote                       time"
+    );
+    for r in &chain.rounds {
+        let shrink = match (r.shrinkage, r.ci95) {
+            (Some(s), Some([lo, hi])) => {
+                format!("{:.1} % [{:.1}, {:.1}]", 100.0 * s, 100.0 * lo, 100.0 * hi)
+            }
+            _ => "-".to_string(),
+        };
+        println!(
+            "  {:<6} {:<26} {:<23} {:>26.3} -> {:<8.3} {:<27} {:.0} s{}",
+            r.round,
+            r.verdict,
+            shrink,
+            r.heldout_mde_as_given_cm,
+            r.heldout_mde_written_cm,
+            r.written,
+            r.wall_s,
+            if r.budget_options.is_empty() {
+                String::new()
+            } else {
+                format!(" ({})", r.budget_options)
+            }
+        );
+    }
+    if let Some(stopped) = &chain.stopped {
+        println!("  stopped at {stopped}");
+    }
+    if let (Some(last), Some(first)) = (chain.rounds.last(), chain.rounds.first()) {
+        println!(
+            "  final model {} in {}{}",
+            last.model_written,
+            last.written_run,
+            d.write_run.as_ref().map_or(String::new(), |w| format!(
+                " (also written to {})",
+                w.display()
+            ))
+        );
+        println!(
+            "  held-out (the val split, which every round chose on): {:.3} cm as given -> {:.3} cm final",
+            first.heldout_mde_as_given_cm, last.heldout_mde_written_cm
+        );
+    }
+    match &chain.test {
+        Some(t) => println!(
+            "  test split ({} episodes, scored once): {:.3} cm as given -> {:.3} cm final ({:.1} % lower)",
+            t.episodes,
+            t.mde_as_given_cm,
+            t.mde_final_cm,
+            100.0 * t.shrinkage
+        ),
+        None => println!(
+            "  note: the rounds chose on the val split, so its numbers flatter the final model; \
+             run the chain on a `cargo xtask dev-split` copy, whose test split it scores once"
+        ),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[derive(clap::Parser)]
+    enum Cmd {
+        Gen(crate::cmd_gen::GenArgs),
+        DevSplit(crate::cmd_import::DevSplitArgs),
+        Fit(crate::cmd_fit::FitArgs),
+        Chain(ChainArgs),
+    }
+
+    fn cmd(argv: &[&str]) -> Cmd {
+        <Cmd as clap::Parser>::try_parse_from(std::iter::once("xtask").chain(argv.iter().copied()))
+            .unwrap()
+    }
+
+    /// A small chain: the flag with a strong actuation delay its backbone lacks, tiny refits.
+    fn chain_args(dir: &Path, out: &str, extra: &[&str]) -> ChainArgs {
+        let data = dir.join("dev");
+        let run = dir.join("fitted");
+        let out = dir.join(out);
+        let mut argv = vec![
+            "chain",
+            "--data",
+            data.to_str().unwrap(),
+            "--run",
+            run.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--population",
+            "4",
+            "--generations",
+            "3",
+            "--samples",
+            "2",
+            "--resamples",
+            "200",
+            "--candidates",
+            "actuation-delay,drag,bending",
+            "--no-probe",
+            "--quiet",
+        ];
+        argv.extend_from_slice(extra);
+        match cmd(&argv) {
+            Cmd::Chain(args) => args,
+            _ => unreachable!(),
+        }
+    }
+
+    fn prepare(dir: &Path) {
+        let raw = dir.join("raw");
+        let dev = dir.join("dev");
+        let fitted = dir.join("fitted");
+        let steps = [
+            vec![
+                "gen",
+                "--object",
+                "flag",
+                "--preset",
+                "fixture",
+                "--effects",
+                "actuation-delay",
+                "--episodes",
+                "6",
+                "--val",
+                "3",
+                "--episodes-per-recording",
+                "1",
+                "--out",
+                raw.to_str().unwrap(),
+            ],
+            vec![
+                "dev-split",
+                "--data",
+                raw.to_str().unwrap(),
+                "--out",
+                dev.to_str().unwrap(),
+                "--hold-out",
+                "2",
+            ],
+            vec![
+                "fit",
+                "--data",
+                dev.to_str().unwrap(),
+                "--run",
+                fitted.to_str().unwrap(),
+                "--population",
+                "4",
+                "--generations",
+                "4",
+                "--samples",
+                "2",
+                "--quiet",
+            ],
+        ];
+        for argv in steps {
+            match cmd(&argv) {
+                Cmd::Gen(a) => crate::cmd_gen::run(&a).unwrap(),
+                Cmd::DevSplit(a) => crate::cmd_import::dev_split(&a).unwrap(),
+                Cmd::Fit(a) => drop(crate::cmd_fit::run(&a).unwrap()),
+                Cmd::Chain(_) => unreachable!(),
+            }
+        }
+    }
+
+    fn read_chain(out: &Path) -> ChainFile {
+        serde_json::from_str(&std::fs::read_to_string(out.join("chain.json")).unwrap()).unwrap()
+    }
+
+    /// Each round diagnoses what the round before wrote, adds at most the effect its verdict
+    /// names, and the chain stops at the first verdict that adds none; the start and final
+    /// models are scored on the test split; a chain stopped by its round limit and resumed
+    /// with a larger one ends where an uninterrupted chain does, and a finished chain run
+    /// again redoes nothing.
+    #[test]
+    fn a_chain_adds_one_effect_a_round_and_resumes_where_it_stopped() {
+        let dir = std::env::temp_dir().join(format!("pgrd-chain-{}", std::process::id()));
+        std::fs::remove_dir_all(&dir).ok();
+        prepare(&dir);
+
+        let whole = run(&chain_args(&dir, "whole", &[])).unwrap();
+        let rounds = &whole.rounds;
+        // The delay the backbone lacks is strong: the chain adds at least it.
+        assert!(rounds.len() >= 2, "{rounds:?}");
+        assert_eq!(rounds[0].verdict, "actuation-delay");
+        let (last, earlier) = rounds.split_last().unwrap();
+        assert!(!adds_effect(&last.verdict), "{}", last.verdict);
+        for (k, r) in rounds.iter().enumerate() {
+            assert_eq!(r.round, k + 1);
+            if adds_effect(&r.verdict) {
+                assert_eq!(r.written, format!("with {}", r.verdict));
+                assert_eq!(
+                    r.model_written,
+                    format!("{}+{}", r.model_diagnosed, r.verdict)
+                );
+            } else {
+                assert_eq!(r.model_written, r.model_diagnosed);
+            }
+        }
+        for (r, next) in earlier.iter().zip(&rounds[1..]) {
+            assert!(adds_effect(&r.verdict));
+            assert_eq!(next.diagnosed_run, r.written_run);
+            assert_eq!(next.model_diagnosed, r.model_written);
+            // The written model scores on the held-out episodes what its round said it would.
+            let (a, b) = (next.heldout_mde_as_given_cm, r.heldout_mde_written_cm);
+            assert!((a - b).abs() <= 1e-9 * b, "{a} vs {b}");
+        }
+        assert_eq!(whole.final_run.as_deref(), Some(last.written_run.as_str()));
+        assert!(whole.stopped.as_deref().unwrap().contains("no effect left"));
+        let test = whole.test.as_ref().expect("the dev split has a test split");
+        assert_eq!(test.episodes, 3);
+        assert!(test.mde_final_cm.is_finite() && test.mde_as_given_cm.is_finite());
+
+        // A finished chain run again reads its rounds and redoes none.
+        let report = dir.join("whole/round-1/report.json");
+        let stamp = std::fs::metadata(&report).unwrap().modified().unwrap();
+        let again = run(&chain_args(&dir, "whole", &[])).unwrap();
+        assert_eq!(again.rounds, whole.rounds);
+        assert_eq!(
+            std::fs::metadata(&report).unwrap().modified().unwrap(),
+            stamp
+        );
+
+        // Stopped by the round limit, then resumed: the same verdicts, models and scores.
+        let limited = run(&chain_args(&dir, "limited", &["--max-rounds", "1"])).unwrap();
+        assert_eq!(limited.rounds.len(), 1);
+        assert!(limited.stopped.as_deref().unwrap().contains("round limit"));
+        let resumed = run(&chain_args(&dir, "limited", &["--max-rounds", "9"])).unwrap();
+        assert_eq!(resumed.rounds.len(), whole.rounds.len());
+        for (a, b) in resumed.rounds.iter().zip(&whole.rounds) {
+            assert_eq!(a.verdict, b.verdict);
+            assert_eq!(a.model_written, b.model_written);
+            assert_eq!(a.heldout_mde_written_cm, b.heldout_mde_written_cm);
+        }
+        assert_eq!(read_chain(&dir.join("limited")).rounds, resumed.rounds);
+
+        // Other settings on the same chain directory are refused, not mixed in.
+        let err = run(&chain_args(&dir, "limited", &["--seed", "1"])).unwrap_err();
+        assert!(
+            err.to_string()
+                .contains("other data, run or diagnosis settings"),
+            "{err}"
+        );
+        std::fs::remove_dir_all(&dir).ok();
+    }
+}
