@@ -115,6 +115,7 @@ pub fn run(args: &ChainArgs) -> anyhow::Result<ChainFile> {
             "--write-run {} is inside the chain's directory; name a directory outside it",
             dir.display()
         );
+        cmd_diagnose::check_write_run(dir, &d.run)?;
     }
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     let path = out.join("chain.json");
@@ -178,12 +179,8 @@ pub fn run(args: &ChainArgs) -> anyhow::Result<ChainFile> {
     let final_run = PathBuf::from(&last.written_run);
     if let Some(dir) = &d.write_run {
         let file = read_backbone(&final_run)?;
+        cmd_diagnose::check_write_run(dir, &d.run)?;
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-        anyhow::ensure!(
-            !dir.join("residual.safetensors").exists(),
-            "--write-run {}: it holds a residual network trained on another backbone; name a new directory",
-            dir.display()
-        );
         write_json(&backbone_path(dir), &file)?;
     }
     chain.test = test_scores(d, out, &final_run)?;
@@ -565,6 +562,20 @@ mod tests {
             assert_eq!(a.heldout_mde_written_cm, b.heldout_mde_written_cm);
         }
         assert_eq!(read_chain(&dir.join("limited")).rounds, resumed.rounds);
+
+        // The final model never replaces the run the chain started from.
+        let fitted = dir.join("fitted");
+        let err = run(&chain_args(
+            &dir,
+            "other",
+            &["--write-run", fitted.to_str().unwrap()],
+        ))
+        .unwrap_err();
+        assert!(
+            err.to_string().contains("is the diagnosed run itself"),
+            "{err}"
+        );
+        assert!(!dir.join("other").exists());
 
         // Other settings on the same chain directory are refused, not mixed in.
         let err = run(&chain_args(&dir, "limited", &["--seed", "1"])).unwrap_err();
