@@ -63,8 +63,11 @@ pub struct ChainRound {
     pub model_diagnosed: String,
     /// The verdict: an effect, `none` or `unknown`.
     pub verdict: String,
-    /// Held-out MDE shrinkage of the verdict's candidate (the probe's for `unknown`) against
-    /// the control refit, with its 95 % interval; absent for `none`.
+    /// The effect the round added: the verdict's, or with `--add-past-unknown` the library's
+    /// own verdict behind an `unknown`; absent when none was added (the chain stops there).
+    pub added: Option<String>,
+    /// Held-out MDE shrinkage against the control refit of the effect added, else of the
+    /// probe for `unknown`; absent otherwise.
     pub shrinkage: Option<f64>,
     /// 95 % bootstrap interval of `shrinkage`.
     pub ci95: Option<[f64; 2]>,
@@ -153,7 +156,7 @@ pub fn run(args: &ChainArgs) -> anyhow::Result<ChainFile> {
         }
     };
     while chain.rounds.len() < args.max_rounds
-        && chain.rounds.last().is_none_or(|r| adds_effect(&r.verdict))
+        && chain.rounds.last().is_none_or(|r| r.added.is_some())
     {
         let k = chain.rounds.len() + 1;
         let round = run_round(d, out, k, chain.rounds.last(), args.max_rounds)?;
@@ -164,11 +167,11 @@ pub fn run(args: &ChainArgs) -> anyhow::Result<ChainFile> {
         write_json(&path, &chain)?;
     }
     let last = chain.rounds.last().context("the chain ran no round")?;
-    chain.stopped = Some(if adds_effect(&last.verdict) {
+    chain.stopped = Some(if let Some(added) = &last.added {
         format!(
-            "round limit {}: round {} still added {}; run the chain again with a larger \
+            "round limit {}: round {} still added {added}; run the chain again with a larger \
              --max-rounds to go on",
-            args.max_rounds, last.round, last.verdict
+            args.max_rounds, last.round
         )
     } else {
         format!(
@@ -235,34 +238,44 @@ fn run_round(
     };
     let diagnosis = cmd_diagnose::run(&round_args)?;
     let model_written = read_backbone(&written)?.label();
-    Ok(round_record(
+    round_record(
         k,
         &diagnosis,
+        d.add_past_unknown,
         &diagnosed,
         given.label(),
         &written,
         model_written,
-    ))
+    )
 }
 
 /// What a round did, from its diagnosis.
 fn round_record(
     k: usize,
     diagnosis: &Diagnosis,
+    add_past_unknown: bool,
     diagnosed: &Path,
     model_diagnosed: String,
     written_run: &Path,
     model_written: String,
-) -> ChainRound {
+) -> anyhow::Result<ChainRound> {
     let verdict = diagnosis.verdict.clone();
-    let ranked = if verdict == "unknown" {
-        diagnosis.probe.as_ref()
+    // What `diagnose --write-run` added: the same rule as there.
+    let added = if adds_effect(&verdict) {
+        Some(verdict.clone())
+    } else if add_past_unknown && verdict == "unknown" {
+        Some(diagnosis.library_verdict()?).filter(|v| adds_effect(v))
     } else {
-        diagnosis.ranking.iter().find(|r| r.effect == verdict)
+        None
     };
-    let (written, heldout_written) = if adds_effect(&verdict) {
-        let after = (diagnosis.how_far.as_ref()).map_or(f64::NAN, |h| h.after.mde_cm);
-        (format!("with {verdict}"), after)
+    let ranked = match &added {
+        Some(e) => diagnosis.ranking.iter().find(|r| &r.effect == e),
+        None if verdict == "unknown" => diagnosis.probe.as_ref(),
+        None => None,
+    };
+    let (written, heldout_written) = if let Some(e) = &added {
+        let after = ranked.map_or(f64::NAN, |r| r.heldout_mde_after_cm);
+        (format!("with {e}"), after)
     } else if cmd_diagnose::control_is_better(diagnosis) {
         (
             "control refit".to_string(),
@@ -271,11 +284,12 @@ fn round_record(
     } else {
         ("as given".to_string(), diagnosis.backbone_as_given.mde_cm)
     };
-    ChainRound {
+    Ok(ChainRound {
         round: k,
         diagnosed_run: diagnosed.display().to_string(),
         model_diagnosed,
         verdict,
+        added,
         shrinkage: ranked.map(|r| r.shrinkage),
         ci95: ranked.map(|r| r.ci95),
         heldout_mde_as_given_cm: diagnosis.backbone_as_given.mde_cm,
@@ -285,7 +299,7 @@ fn round_record(
         model_written,
         budget_options: (diagnosis.budget.as_ref()).map_or(String::new(), |b| b.options.clone()),
         wall_s: diagnosis.wall_s,
-    }
+    })
 }
 
 /// The model the chain started from and the final one, scored once on the `test` split when
@@ -331,6 +345,10 @@ fn print_summary(chain: &ChainFile, d: &DiagnoseArgs) {
         "  round  verdict                    shrinkage [95 %]        held-out MDE, cm: as given -> written  wrote                       time"
     );
     for r in &chain.rounds {
+        let verdict = match &r.added {
+            Some(a) if *a != r.verdict => format!("{} (added {a})", r.verdict),
+            _ => r.verdict.clone(),
+        };
         let shrink = match (r.shrinkage, r.ci95) {
             (Some(s), Some([lo, hi])) => {
                 format!("{:.1} % [{:.1}, {:.1}]", 100.0 * s, 100.0 * lo, 100.0 * hi)
@@ -340,7 +358,7 @@ fn print_summary(chain: &ChainFile, d: &DiagnoseArgs) {
         println!(
             "  {:<6} {:<26} {:<23} {:>26.3} -> {:<8.3} {:<27} {:.0} s{}",
             r.round,
-            r.verdict,
+            verdict,
             shrink,
             r.heldout_mde_as_given_cm,
             r.heldout_mde_written_cm,
@@ -514,20 +532,19 @@ mod tests {
         assert_eq!(rounds[0].verdict, "actuation-delay");
         let (last, earlier) = rounds.split_last().unwrap();
         assert!(!adds_effect(&last.verdict), "{}", last.verdict);
+        assert_eq!(last.added, None);
         for (k, r) in rounds.iter().enumerate() {
             assert_eq!(r.round, k + 1);
-            if adds_effect(&r.verdict) {
-                assert_eq!(r.written, format!("with {}", r.verdict));
-                assert_eq!(
-                    r.model_written,
-                    format!("{}+{}", r.model_diagnosed, r.verdict)
-                );
+            if let Some(added) = &r.added {
+                assert_eq!(added, &r.verdict);
+                assert_eq!(r.written, format!("with {added}"));
+                assert_eq!(r.model_written, format!("{}+{added}", r.model_diagnosed));
             } else {
                 assert_eq!(r.model_written, r.model_diagnosed);
             }
         }
         for (r, next) in earlier.iter().zip(&rounds[1..]) {
-            assert!(adds_effect(&r.verdict));
+            assert!(r.added.is_some());
             assert_eq!(next.diagnosed_run, r.written_run);
             assert_eq!(next.model_diagnosed, r.model_written);
             // The written model scores on the held-out episodes what its round said it would.
@@ -585,5 +602,40 @@ mod tests {
             "{err}"
         );
         std::fs::remove_dir_all(&dir).ok();
+    }
+
+    /// `--add-past-unknown` carries the chain past an `unknown` whose library refits name an
+    /// effect (the stored paper-magnet report: drag significant, the probe far better), and
+    /// records what the written model scores; without it that round adds nothing.
+    #[test]
+    fn past_an_unknown_the_round_adds_the_library_verdict_only_when_asked() {
+        let path = concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../crates/gap/tests/data/paper-magnet-x4-seed0.json"
+        );
+        let d: Diagnosis = serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap();
+        assert_eq!(d.verdict, "unknown");
+        let record = |past: bool| {
+            round_record(
+                2,
+                &d,
+                past,
+                Path::new("in"),
+                "spring-mass".into(),
+                Path::new("out"),
+                "x".into(),
+            )
+            .unwrap()
+        };
+        let past = record(true);
+        let drag = d.ranking.iter().find(|r| r.effect == "drag").unwrap();
+        assert_eq!(past.added.as_deref(), Some("drag"));
+        assert_eq!(past.written, "with drag");
+        assert_eq!(past.heldout_mde_written_cm, drag.heldout_mde_after_cm);
+        assert_eq!(past.shrinkage, Some(drag.shrinkage));
+        let stop = record(false);
+        assert_eq!(stop.added, None);
+        assert_eq!(stop.shrinkage, d.probe.as_ref().map(|p| p.shrinkage));
+        assert!(stop.written == "control refit" || stop.written == "as given");
     }
 }

@@ -129,6 +129,13 @@ pub struct DiagnoseArgs {
     /// stiffness field of the run (`refine`) is kept as it is: the diagnosis holds it fixed.
     #[arg(long)]
     pub write_run: Option<PathBuf>,
+    /// With the verdict `unknown`, `--write-run` adds the effect the library's refits name on
+    /// their own (`gap::Diagnosis::library_verdict`: a significant candidate the probe outdid)
+    /// instead of writing the model without one; with none significant it writes as for
+    /// `unknown`. For users who add every effect that holds out before modelling the rest
+    /// (`cargo xtask chain`).
+    #[arg(long)]
+    pub add_past_unknown: bool,
     /// How the simulator chooses its substep in every rollout of the diagnosis (the backbone
     /// as given included): every contender is refitted and compared under it. Default: the
     /// run's own, unless `--budget-min` chooses `spectral`. `--write-run` records it in a
@@ -716,7 +723,19 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
     // verdict `none` / `unknown` there is no effect to add, but the control refit (the same
     // model refitted on the train split) may still beat the model as given: `--write-run`
     // writes the better of the two on the held-out episodes, with both scores.
-    let added = Candidate::parse(&d.verdict).ok();
+    let mut added = Candidate::parse(&d.verdict).ok();
+    if args.add_past_unknown && d.verdict == "unknown" {
+        let alone = d.library_verdict()?;
+        added = Candidate::parse(&alone).ok();
+        println!(
+            "verdict unknown; the library's refits alone: {alone}{}",
+            if added.is_some() {
+                " (added, --add-past-unknown)"
+            } else {
+                ""
+            }
+        );
+    }
     if added.is_some() || args.write_run.is_some() {
         let (params, effects) = d.refitted_model(&backbone.params, added)?;
         if added.is_some() {

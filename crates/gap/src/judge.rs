@@ -190,4 +190,25 @@ impl Diagnosis {
         }
         Ok(judged)
     }
+
+    /// The verdict the library's refits reach on their own, under the report's rule: the
+    /// probe and a network stage left out. Where the report says `unknown` it names the
+    /// significant library effect the probe outdid, or `none` when there is none: what a user
+    /// who adds every effect that holds out adds next (`cargo xtask chain --add-past-unknown`).
+    ///
+    /// ```no_run
+    /// # fn demo(d: gap::Diagnosis) -> Result<(), gap::GapError> {
+    /// if d.verdict == "unknown" {
+    ///     println!("the library alone: {}", d.library_verdict()?);
+    /// }
+    /// # Ok(()) }
+    /// ```
+    pub fn library_verdict(&self) -> Result<String, GapError> {
+        let library_alone = Diagnosis {
+            probe: None,
+            learnable: None,
+            ..self.clone()
+        };
+        Ok(library_alone.rejudge(self.config.rule)?.verdict)
+    }
 }

@@ -229,3 +229,41 @@ fn rejudging_applies_the_network_stage_again() {
     let j = old.rejudge(floor(0.45)).unwrap();
     assert_eq!((j.verdict.as_str(), j.learnable), ("none", None));
 }
+
+/// Without the probe the library's refits name the effect the probe outdid: on the stored
+/// `unknown` report the one significant refit (drag), on the others their own verdict; with
+/// that refit's interval reaching 0 there is nothing to name, while the probe alone still
+/// makes the gap `unknown`.
+#[test]
+fn the_library_verdict_names_what_the_probe_outdid() {
+    let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data");
+    let read = |name: &str| -> gap::Diagnosis {
+        serde_json::from_str(&std::fs::read_to_string(format!("{dir}/{name}.json")).unwrap())
+            .unwrap()
+    };
+    let magnet = read("paper-magnet-x4-seed0");
+    assert_eq!(magnet.verdict, "unknown");
+    let significant: Vec<&str> = (magnet.ranking.iter())
+        .filter(|r| r.significant)
+        .map(|r| r.effect.as_str())
+        .collect();
+    assert_eq!(significant, ["drag"]);
+    assert_eq!(magnet.library_verdict().unwrap(), "drag");
+    for (name, verdict) in [
+        ("flag-magnet-x4-seed1", "drag"),
+        ("rope-plasticity-x64-seed1", "plasticity"),
+    ] {
+        let d = read(name);
+        assert_eq!(d.verdict, verdict);
+        assert_eq!(d.library_verdict().unwrap(), verdict, "{name}");
+    }
+    let mut weak = magnet.clone();
+    let drag = weak
+        .ranking
+        .iter_mut()
+        .find(|r| r.effect == "drag")
+        .unwrap();
+    drag.ci95[0] = -0.05;
+    assert_eq!(weak.rejudge(weak.config.rule).unwrap().verdict, "unknown");
+    assert_eq!(weak.library_verdict().unwrap(), "none");
+}
