@@ -23,6 +23,16 @@ use crate::report::write_json;
 /// also written, and `--with` the base effects of the first round only (later rounds take
 /// theirs from the run they diagnose).
 #[derive(clap::Args)]
+#[command(
+    mut_arg("out", |a| a.help("Chain directory (created or resumed): round-<k>/ and chain.json")),
+    mut_arg("write_run", |a| a.help("Also write the chain's final model to this run directory")),
+    mut_arg("with", |a| a.help("Base effects of the first round (as `diagnose --with`)")),
+    mut_arg("add_past_unknown", |a| a.help(
+        "With the verdict `unknown`, the round adds the effect the library's refits name on \
+         their own (a significant candidate the probe outdid) and the chain goes on"
+    )),
+    mut_arg("estimate", |a| a.hide(true))
+)]
 pub struct ChainArgs {
     #[command(flatten)]
     pub diagnose: DiagnoseArgs,
