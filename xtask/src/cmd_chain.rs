@@ -1,6 +1,7 @@
 //! `cargo xtask chain`: the user's diagnosis rounds in one resumable command. Each round
 //! diagnoses the model the round before wrote (`diagnose --write-run`), so each adds at most
-//! the effect its verdict names; the chain stops at the first `none` / `unknown` or at
+//! the effect its verdict names; the chain stops at the first round that adds none (`none`,
+//! or `unknown` unless `--add-past-unknown` finds a library effect behind it) or at
 //! `--max-rounds`, and scores the model it started from and the one it ends with once on the
 //! dataset's `test` split when there is one (`cargo xtask dev-split`). `docs/gap.md`, "Chains
 //! of diagnoses".
@@ -9,7 +10,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 use dataset::{Dataset, Split};
-use gap::{Candidate, Diagnosis};
+use gap::Diagnosis;
 use serde::{Deserialize, Serialize};
 
 use crate::cmd_diagnose::{self, DiagnoseArgs};
@@ -202,11 +203,6 @@ pub fn run(args: &ChainArgs) -> anyhow::Result<ChainFile> {
     Ok(chain)
 }
 
-/// Whether a verdict names an effect the next round's model has.
-fn adds_effect(verdict: &str) -> bool {
-    Candidate::parse(verdict).is_ok()
-}
-
 /// The diagnosis settings a chain must resume with: every argument but the output paths and
 /// the printing.
 fn settings_of(d: &DiagnoseArgs) -> String {
@@ -270,14 +266,8 @@ fn round_record(
     model_written: String,
 ) -> anyhow::Result<ChainRound> {
     let verdict = diagnosis.verdict.clone();
-    // What `diagnose --write-run` added: the same rule as there.
-    let added = if adds_effect(&verdict) {
-        Some(verdict.clone())
-    } else if add_past_unknown && verdict == "unknown" {
-        Some(diagnosis.library_verdict()?).filter(|v| adds_effect(v))
-    } else {
-        None
-    };
+    let added =
+        cmd_diagnose::effect_to_add(diagnosis, add_past_unknown)?.map(|c| c.name().to_string());
     let ranked = match &added {
         Some(e) => diagnosis.ranking.iter().find(|r| &r.effect == e),
         None if verdict == "unknown" => diagnosis.probe.as_ref(),
@@ -417,6 +407,11 @@ fn print_summary(chain: &ChainFile, d: &DiagnoseArgs) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Whether a verdict names an effect.
+    fn adds_effect(verdict: &str) -> bool {
+        gap::Candidate::parse(verdict).is_ok()
+    }
 
     #[derive(clap::Parser)]
     enum Cmd {

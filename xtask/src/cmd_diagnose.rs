@@ -723,17 +723,14 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
     // verdict `none` / `unknown` there is no effect to add, but the control refit (the same
     // model refitted on the train split) may still beat the model as given: `--write-run`
     // writes the better of the two on the held-out episodes, with both scores.
-    let mut added = Candidate::parse(&d.verdict).ok();
+    let added = effect_to_add(&d, args.add_past_unknown)?;
     if args.add_past_unknown && d.verdict == "unknown" {
-        let alone = d.library_verdict()?;
-        added = Candidate::parse(&alone).ok();
         println!(
-            "verdict unknown; the library's refits alone: {alone}{}",
-            if added.is_some() {
-                " (added, --add-past-unknown)"
-            } else {
-                ""
-            }
+            "verdict unknown; the library's refits alone: {}",
+            added.map_or("none".to_string(), |c| format!(
+                "{} (added, --add-past-unknown)",
+                c.name()
+            ))
         );
     }
     if added.is_some() || args.write_run.is_some() {
@@ -794,6 +791,22 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
         }
     }
     Ok(d)
+}
+
+/// The effect `--write-run` adds to the model: the verdict's, or with `add_past_unknown` the
+/// library's own verdict behind an `unknown` ([`Diagnosis::library_verdict`]); `None` when the
+/// verdict adds none.
+pub(crate) fn effect_to_add(
+    d: &Diagnosis,
+    add_past_unknown: bool,
+) -> anyhow::Result<Option<Candidate>> {
+    if let Ok(c) = Candidate::parse(&d.verdict) {
+        return Ok(Some(c));
+    }
+    if add_past_unknown && d.verdict == "unknown" {
+        return Ok(Candidate::parse(&d.library_verdict()?).ok());
+    }
+    Ok(None)
 }
 
 /// Whether the control refit (the model's own effects refitted on the train split, none
