@@ -201,6 +201,14 @@ pub struct TrainArgs {
     /// second backbone rollout per segment; nothing learned depends on it.
     #[arg(long, default_value_t = 10)]
     pub yardstick_every: usize,
+    /// Decoupled weight decay (AdamW) per unit learning rate; 0: off, the paper's Adam.
+    #[arg(long, default_value_t = 0.0)]
+    pub weight_decay: f64,
+    /// Gaussian noise (metres, per axis) on each training segment's start and history
+    /// positions of the free particles, the targets unchanged: teaches the network to pull a
+    /// drifted state back (docs/residual.md, "Input noise and weight decay"); 0: off.
+    #[arg(long, default_value_t = 0.0)]
+    pub input_noise: f32,
     /// Start from the weights of this network (a `residual.safetensors` with its
     /// `residual.json` beside it) instead of a fresh initialisation, e.g. to fine-tune a
     /// network trained on 5-step segments on whole windows. Its configuration must match the
@@ -493,6 +501,8 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
         },
         ema_decay: args.ema_decay,
         yardstick_every: args.yardstick_every,
+        weight_decay: args.weight_decay,
+        input_noise_m: args.input_noise,
     };
     let unit = train_cfg.loss.unit();
     let resuming = args.run.join("train_ckpt.safetensors").exists() && !args.restart;

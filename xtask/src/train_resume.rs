@@ -11,7 +11,7 @@ use residual::{ModelConfig, TrainConfig};
 
 /// Training settings that must match to resume. `iterations` and `decay_steps` may change (to
 /// extend a run); everything else decides what is learned.
-const TRAIN_KEYS: [&str; 12] = [
+const TRAIN_KEYS: [&str; 14] = [
     "rollout_steps",
     "batch",
     "lr",
@@ -26,6 +26,8 @@ const TRAIN_KEYS: [&str; 12] = [
     // The weight average is part of the checkpoint: resuming it with another decay (or
     // switching it on halfway) would average a different network than the one named.
     "ema_decay",
+    "weight_decay",
+    "input_noise_m",
 ];
 
 /// An error naming every setting in which `checkpoint_json` (a `train_ckpt.json`) differs from

@@ -484,7 +484,8 @@ fn the_yardstick_schedule_changes_nothing_learned() {
 
 /// Settings that cannot train are refused when the trainer is made, before any step: a NaN or
 /// non-positive learning rate (which would save a network of NaN weights), a zero or NaN clip,
-/// zero-step rollouts, an empty batch, a weight-average decay outside [0, 1).
+/// zero-step rollouts, an empty batch, a weight-average decay outside [0, 1), a negative or
+/// non-finite weight decay or input noise.
 #[test]
 fn settings_that_cannot_train_are_refused() {
     let model = ModelConfig::tiny();
@@ -502,6 +503,10 @@ fn settings_that_cannot_train_are_refused() {
         with(|c| c.rollout_steps = 0),
         with(|c| c.batch = 0),
         with(|c| c.ema_decay = 1.0),
+        with(|c| c.weight_decay = -0.1),
+        with(|c| c.weight_decay = f64::NAN),
+        with(|c| c.input_noise_m = -1e-3),
+        with(|c| c.input_noise_m = f32::INFINITY),
     ];
     for cfg in bad {
         let shown = format!("{cfg:?}");
@@ -513,4 +518,78 @@ fn settings_that_cannot_train_are_refused() {
         }
     }
     assert!(Trainer::new(ResidualNet::new(&model, 0).unwrap(), TrainConfig::default()).is_ok());
+}
+
+/// Sum of squares of every trainable weight.
+fn weight_norm2(net: &ResidualNet) -> f64 {
+    net.named_vars()
+        .iter()
+        .map(|(_, v)| {
+            let t = v.as_tensor();
+            f64::from(
+                t.sqr()
+                    .unwrap()
+                    .sum_all()
+                    .unwrap()
+                    .to_scalar::<f32>()
+                    .unwrap(),
+            )
+        })
+        .sum()
+}
+
+/// Input noise and weight decay each change what is learned, deterministically for a seed; the
+/// noise draws from a stream of its own (the segments sampled stay those of the run without
+/// it), and the decay shrinks the weights.
+#[test]
+fn input_noise_and_weight_decay_train_deterministically() {
+    let set = common::rope_train_set();
+    let model = ModelConfig {
+        residual_scale: 0.5,
+        ..ModelConfig::tiny()
+    };
+    let run = |change: fn(&mut TrainConfig)| {
+        let mut cfg = TrainConfig {
+            iterations: 4,
+            rollout_steps: 3,
+            decay_steps: 4,
+            lr: 3e-3,
+            seed: 4,
+            start_from: residual::StartFrom::Recorded,
+            ..TrainConfig::default()
+        };
+        change(&mut cfg);
+        let mut trainer = Trainer::new(ResidualNet::new(&model, 4).unwrap(), cfg).unwrap();
+        let losses: Vec<f64> = (0..4)
+            .map(|_| trainer.train_step(&set).unwrap().loss)
+            .collect();
+        (losses, weight_norm2(&trainer.net))
+    };
+    let plain = run(|_| {});
+    let noisy = run(|c| c.input_noise_m = 0.01);
+    assert_eq!(
+        noisy,
+        run(|c| c.input_noise_m = 0.01),
+        "noise not deterministic"
+    );
+    assert_ne!(noisy.0, plain.0, "1 cm of noise changed no loss");
+    // Noise far below a float's resolution at these coordinates (tenths of a metre) moves no
+    // position, so if the segments are those of the plain run, so is everything learned.
+    assert_eq!(
+        run(|c| c.input_noise_m = 1e-15),
+        plain,
+        "the noise moved the segments"
+    );
+    let decayed = run(|c| c.weight_decay = 20.0);
+    assert_eq!(decayed, run(|c| c.weight_decay = 20.0));
+    assert_eq!(
+        decayed.0[0], plain.0[0],
+        "the first loss is scored before any update"
+    );
+    assert!(
+        decayed.1 < 0.9 * plain.1,
+        "weights {} not shrunk against {}",
+        decayed.1,
+        plain.1
+    );
 }
