@@ -845,7 +845,6 @@ impl Trainer {
     }
 }
 
-/// `(T, N, 3)` tensor of a sequence of particle arrays.
 /// `sample` with Gaussian noise of `sigma_m` metres per axis on every free particle's start
 /// position and history positions ([`TrainConfig::input_noise_m`]). Held particles follow their
 /// gripper and keep their positions.
@@ -864,6 +863,7 @@ fn perturbed(mut sample: Sample, sigma_m: f32, rng: &mut ChaCha8Rng) -> Result<S
     Ok(sample)
 }
 
+/// `(T, N, 3)` tensor of a sequence of particle arrays.
 fn stack(frames: &[Vec<Vec3>], dev: &candle_core::Device) -> Result<Tensor> {
     let n = frames.first().map_or(0, Vec::len);
     let flat: Vec<f32> = frames
