@@ -12,6 +12,7 @@ mod cmd_chain;
 mod cmd_compare;
 mod cmd_demo;
 mod cmd_diagnose;
+mod cmd_ensemble;
 mod cmd_eval;
 mod cmd_fit;
 mod cmd_gen;
@@ -66,6 +67,9 @@ enum Command {
     Plan(cmd_plan::PlanArgs),
     /// Train the residual network (PGRD) on top of a run's fitted backbone.
     Train(cmd_train::TrainArgs),
+    /// Combine trained residual networks (e.g. several seeds) into one model whose residual is
+    /// their mean; writes a run that `eval`, `render` and `plan` use as PGRD.
+    Ensemble(cmd_ensemble::EnsembleArgs),
     /// Convert another dataset format into a pgrd dataset.
     Import(cmd_import::ImportArgs),
     /// Copy a dataset with its last training episodes as `val` and its `val` as `test`: choose
@@ -92,5 +96,6 @@ fn main() -> anyhow::Result<()> {
         Command::Plan(args) => cmd_plan::run(&args),
         Command::Render(args) => cmd_render::run(&args),
         Command::Train(args) => cmd_train::run(&args),
+        Command::Ensemble(args) => cmd_ensemble::run(&args),
     }
 }

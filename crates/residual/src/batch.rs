@@ -110,14 +110,18 @@ fn run_group<'a>(net: &ResidualNet, mut live: Vec<Live<'a>>) -> Result<Vec<(usiz
     let cfg = net.config();
     let dev = net.device();
     let mut done = Vec::with_capacity(live.len());
-    let temporal = net.temporal_params()?;
-    // Decoder outputs `(rows, 3)` of the last `window` steps, flattened, rows = the live
-    // clouds' particles in order.
-    let mut window: Vec<Vec<f32>> = Vec::with_capacity(cfg.window + 1);
+    let members: Vec<&ResidualNet> = net.ensemble_members().collect();
+    let temporal = members
+        .iter()
+        .map(|m| m.temporal_params())
+        .collect::<Result<Vec<_>>>()?;
+    // Per member of an ensemble (one for a single network), decoder outputs `(rows, 3)` of
+    // the last `window` steps, flattened, rows = the live clouds' particles in order.
+    let mut windows: Vec<Vec<Vec<f32>>> = vec![Vec::with_capacity(cfg.window + 1); members.len()];
     let mut step = 0;
     while !live.is_empty() {
         live.iter_mut().for_each(|l| l.prepare(net, step));
-        retire(&mut live, &mut window, &mut done, |l| l.failed.is_some())?;
+        retire(&mut live, &mut windows, &mut done, |l| l.failed.is_some())?;
         if live.is_empty() {
             break;
         }
@@ -131,23 +135,36 @@ fn run_group<'a>(net: &ResidualNet, mut live: Vec<Live<'a>>) -> Result<Vec<(usiz
             .flat_map(|l| l.centred.iter().flat_map(|p| p.to_array()))
             .collect();
         let pos = Tensor::from_vec(centred, (rows, 3), dev)?;
-        window.push(
-            net.decode(&feats, &pos, &st, [0, 1, 2, 3], Pass::Infer)?
-                .flatten_all()?
-                .to_vec1()?,
-        );
-        if window.len() > cfg.window {
-            window.remove(0);
+        let mut delta: Vec<f32> = Vec::new();
+        for ((member, window), temporal) in members.iter().zip(&mut windows).zip(&temporal) {
+            window.push(
+                member
+                    .decode(&feats, &pos, &st, [0, 1, 2, 3], Pass::Infer)?
+                    .flatten_all()?
+                    .to_vec1()?,
+            );
+            if window.len() > cfg.window {
+                window.remove(0);
+            }
+            let rows_of: Vec<&[f32]> = window.iter().map(Vec::as_slice).collect();
+            let d = member.aggregate_rows(temporal.as_ref(), &rows_of, rows);
+            if delta.is_empty() {
+                delta = d;
+            } else {
+                delta.iter_mut().zip(&d).for_each(|(s, x)| *s += x);
+            }
         }
-        let rows_of: Vec<&[f32]> = window.iter().map(Vec::as_slice).collect();
-        let delta = net.aggregate_rows(temporal.as_ref(), &rows_of, rows);
+        if members.len() > 1 {
+            let k = members.len() as f32;
+            delta.iter_mut().for_each(|s| *s /= k);
+        }
         let mut rest = delta.as_slice();
         for l in &mut live {
             let (head, tail) = rest.split_at(3 * l.n);
             l.finish(net, step, head);
             rest = tail;
         }
-        retire(&mut live, &mut window, &mut done, |l| {
+        retire(&mut live, &mut windows, &mut done, |l| {
             l.failed.is_some() || l.positions.len() == l.steps
         })?;
         step += 1;
@@ -185,10 +202,10 @@ fn check(job: &PredictJob<'_>) -> Result<()> {
 }
 
 /// Moves the live rollouts `done` selects to `results` (positions or error) and drops their
-/// rows from the temporal window.
+/// rows from every member's temporal window.
 fn retire(
     live: &mut Vec<Live<'_>>,
-    window: &mut [Vec<f32>],
+    windows: &mut [Vec<Vec<f32>>],
     results: &mut Vec<(usize, JobResult)>,
     done: impl Fn(&Live<'_>) -> bool,
 ) -> Result<()> {
@@ -213,7 +230,7 @@ fn retire(
         row += n;
     }
     *live = kept;
-    for w in window.iter_mut() {
+    for w in windows.iter_mut().flatten() {
         *w = keep
             .iter()
             .flat_map(|&r| w[3 * r as usize..3 * r as usize + 3].iter().copied())

@@ -34,6 +34,7 @@ mod backbone_op;
 mod batch;
 mod config;
 mod encoder;
+mod ensemble;
 mod error;
 mod kernels;
 mod loss;

@@ -147,6 +147,8 @@ pub struct ResidualNet {
     head: Head,
     temporal: Option<Temporal>,
     device: Device,
+    /// The other members of an ensemble (`crate::ensemble`); empty for a single network.
+    pub(crate) members: Vec<ResidualNet>,
 }
 
 impl std::fmt::Debug for ResidualNet {
@@ -154,6 +156,7 @@ impl std::fmt::Debug for ResidualNet {
         f.debug_struct("ResidualNet")
             .field("cfg", &self.cfg)
             .field("parameters", &self.parameter_count())
+            .field("ensemble_size", &self.ensemble_size())
             .finish_non_exhaustive()
     }
 }
@@ -231,6 +234,7 @@ impl ResidualNet {
             head,
             temporal,
             device,
+            members: Vec::new(),
         };
         net.init(seed)?;
         Ok(net)
@@ -287,7 +291,7 @@ impl ResidualNet {
     /// # Ok::<(), residual::ResidualError>(())
     /// ```
     pub fn without_residual(&self) -> Result<ResidualNet> {
-        self.copy_as(self.cfg.clone(), true)
+        self.map_members(|m| m.copy_as(m.cfg.clone(), true))
     }
 
     /// A network of configuration `cfg` (this one's but for the bound) holding this one's
@@ -329,11 +333,13 @@ impl ResidualNet {
         if gain == 0.0 {
             return self.without_residual();
         }
-        let cfg = ModelConfig {
-            residual_scale: self.cfg.residual_scale * gain,
-            ..self.cfg.clone()
-        };
-        self.copy_as(cfg, false)
+        self.map_members(|m| {
+            let cfg = ModelConfig {
+                residual_scale: m.cfg.residual_scale * gain,
+                ..m.cfg.clone()
+            };
+            m.copy_as(cfg, false)
+        })
     }
 
     /// The configuration.
@@ -350,9 +356,16 @@ impl ResidualNet {
         v
     }
 
-    /// Number of scalar parameters.
+    /// Number of scalar parameters (of every member of an ensemble).
     pub fn parameter_count(&self) -> usize {
-        self.named_vars().iter().map(|(_, v)| v.elem_count()).sum()
+        self.ensemble_members()
+            .map(|m| {
+                m.named_vars()
+                    .iter()
+                    .map(|(_, v)| v.elem_count())
+                    .sum::<usize>()
+            })
+            .sum()
     }
 
     /// The device tensors live on (CPU).
@@ -361,8 +374,12 @@ impl ResidualNet {
     }
 
     /// Writes the parameters to `path` (safetensors) and the configuration to `path` with the
-    /// extension `json`.
+    /// extension `json` (an ensemble: every member's parameters under `member<k>.` and the
+    /// member count in the JSON, see [`ResidualNet::ensemble`]).
     pub fn save(&self, path: &Path) -> Result<()> {
+        if !self.members.is_empty() {
+            return self.save_ensemble(path);
+        }
         self.varmap.save(path)?;
         let json = path.with_extension("json");
         let text =
@@ -374,18 +391,21 @@ impl ResidualNet {
         Ok(())
     }
 
-    /// Reads a network written by [`ResidualNet::save`].
+    /// Reads a network (or an ensemble) written by [`ResidualNet::save`].
     pub fn load(path: &Path) -> Result<Self> {
         let json = path.with_extension("json");
         let text = std::fs::read_to_string(&json).map_err(|source| ResidualError::Io {
             path: json.display().to_string(),
             source,
         })?;
-        let cfg: ModelConfig =
-            serde_json::from_str(&text).map_err(|source| ResidualError::Json {
+        let (cfg, members) =
+            crate::ensemble::parse_saved_config(&text).map_err(|source| ResidualError::Json {
                 path: json.display().to_string(),
                 source,
             })?;
+        if members != 1 {
+            return Self::load_ensemble(path, &cfg, members);
+        }
         let mut net = ResidualNet::new(&cfg, 0).map_err(|e| match e {
             ResidualError::Config(m) => ResidualError::Config(format!("{}: {m}", json.display())),
             e => e,
@@ -416,8 +436,12 @@ impl ResidualNet {
         )?;
         let flat: Vec<f32> = pos.iter().flat_map(|p| p.to_array()).collect();
         let p = Tensor::from_vec(flat, (pos.len(), 3), &self.device)?;
-        let r = self.decode(feats, &p, &st, [0, 1, 2, 3], Pass::Grad)?;
-        self.aggregate(&[r], Pass::Grad)
+        let mut deltas = Vec::with_capacity(self.ensemble_size());
+        for m in self.ensemble_members() {
+            let r = m.decode(feats, &p, &st, [0, 1, 2, 3], Pass::Grad)?;
+            deltas.push(m.aggregate(&[r], Pass::Grad)?);
+        }
+        crate::ensemble::mean(deltas)
     }
 
     /// Decoder output `r ∈ (−1, 1)^3` per particle from the `(N, input_dim)` features and the

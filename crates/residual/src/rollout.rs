@@ -307,6 +307,11 @@ fn run(
     }
     let held = backbone.held();
     let train = step_loss.is_some();
+    if train && net.ensemble_size() > 1 {
+        return Err(ResidualError::Config(
+            "an ensemble cannot be trained as a whole: train its members, then combine them".into(),
+        ));
+    }
     let dt = backbone.config().step_dt;
     let vs = f64::from(cfg.velocity_scale);
     let mut scratch = backbone.scratch();
@@ -325,7 +330,8 @@ fn run(
         to_tensor(&history.v[0], &dev)?,
         to_tensor(&history.v[1], &dev)?,
     ];
-    let mut window: Vec<Tensor> = Vec::with_capacity(cfg.window);
+    // One temporal window per member of an ensemble (one for a single network).
+    let mut windows: Vec<Vec<Tensor>> = vec![Vec::with_capacity(cfg.window); net.ensemble_size()];
     let mut positions = Vec::with_capacity(steps);
     let mut velocities = Vec::with_capacity(steps);
     let mut loss: Option<Tensor> = None;
@@ -427,14 +433,15 @@ fn run(
             cfg.patch,
             &dev,
         )?;
-        let r = net.decode(&feats, &pos, &st, opts.curves, Pass::Grad)?;
-        window.push(r);
-        if window.len() > cfg.window {
-            window.remove(0);
+        let mut deltas = Vec::with_capacity(windows.len());
+        for (member, window) in net.ensemble_members().zip(&mut windows) {
+            window.push(member.decode(&feats, &pos, &st, opts.curves, Pass::Grad)?);
+            if window.len() > cfg.window {
+                window.remove(0);
+            }
+            deltas.push(member.aggregate(window, Pass::Grad)?);
         }
-        let delta = net
-            .aggregate(&window, Pass::Grad)?
-            .broadcast_mul(&corrected)?;
+        let delta = crate::ensemble::mean(deltas)?.broadcast_mul(&corrected)?;
         let (nx, nv) = match cfg.residual {
             ResidualKind::Velocity => ((&x_sim + (&delta * f64::from(dt))?)?, (&v_sim + &delta)?),
             ResidualKind::Position => ((&x_sim + (&delta * f64::from(dt))?)?, v_sim.clone()),
@@ -445,7 +452,7 @@ fn run(
             (nx.detach(), nv.detach())
         };
         if !train {
-            for w in &mut window {
+            for w in windows.iter_mut().flatten() {
                 *w = w.detach();
             }
         }

@@ -507,6 +507,13 @@ const EPS: f64 = 1e-8;
 impl Trainer {
     /// A trainer for `net` (Adam moments at zero).
     pub fn new(net: ResidualNet, cfg: TrainConfig) -> Result<Self> {
+        if net.ensemble_size() > 1 {
+            return Err(ResidualError::Config(format!(
+                "an ensemble of {} networks cannot be trained as a whole: train its members, \
+                 then combine them",
+                net.ensemble_size()
+            )));
+        }
         let vars = net.named_vars();
         let m = vars
             .iter()

@@ -134,6 +134,14 @@ fn a_batch_predicts_what_each_rollout_predicts_alone() {
         // More particles than one group holds: several groups, evaluated in parallel.
         assert_batch_matches(&net, &[&a, &b, &c, &a, &b], &[5, 3, 5, 2, 4]);
     }
+    // An ensemble: every member's window drops the rows of a rollout that leaves early.
+    let cfg = ModelConfig::tiny();
+    let ens = ResidualNet::ensemble(vec![
+        ResidualNet::new(&cfg, 4).unwrap(),
+        ResidualNet::new(&cfg, 5).unwrap(),
+    ])
+    .unwrap();
+    assert_batch_matches(&ens, &[&a, &b, &c], &[5, 3, 5]);
 }
 
 /// Largest distance between the particles `idx` of two rollouts, m.

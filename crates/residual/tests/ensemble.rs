@@ -1,0 +1,147 @@
+//! Ensembles: the residual is the members' mean, each member keeps its own temporal window,
+//! an ensemble saves and reloads exactly, and it cannot be trained as a whole.
+
+mod common;
+
+use glam::Vec3;
+use residual::{ModelConfig, ResidualNet, RolloutOptions, TrainConfig, Trainer, hybrid_rollout};
+
+fn opts(steps: usize) -> RolloutOptions {
+    RolloutOptions {
+        steps,
+        ..Default::default()
+    }
+}
+
+/// Two copies of one network are that network, bit for bit (a + a and the halving are exact),
+/// over several steps: the members' windows are kept apart and both see the same inputs.
+#[test]
+fn an_ensemble_of_copies_is_the_network() {
+    let (_, _, scene, history, bb) = common::scene("rope", 1);
+    let net = ResidualNet::new(&ModelConfig::tiny(), 3).unwrap();
+    let copy = net.with_residual_gain(1.0).unwrap();
+    let single = hybrid_rollout(&net, &bb, &scene, &history, opts(5)).unwrap();
+    let pair = ResidualNet::ensemble(vec![net.with_residual_gain(1.0).unwrap(), copy]).unwrap();
+    assert_eq!(pair.ensemble_size(), 2);
+    assert_eq!(pair.parameter_count(), 2 * net.parameter_count());
+    let out = hybrid_rollout(&pair, &bb, &scene, &history, opts(5)).unwrap();
+    assert_eq!(out.positions, single.positions);
+}
+
+/// After one step (same state for every member), the ensemble's offset from the backbone is
+/// the mean of the members' offsets, and differs from each member's.
+#[test]
+fn the_first_residual_is_the_members_mean() {
+    let (_, _, scene, history, bb) = common::scene("rope", 1);
+    let sim = bb.rollout(&scene.init, &scene.actions).unwrap().positions;
+    let cfg = ModelConfig::tiny();
+    let nets: Vec<ResidualNet> = (0..3)
+        .map(|s| ResidualNet::new(&cfg, 10 + s).unwrap())
+        .collect();
+    let offsets = |net: &ResidualNet| -> Vec<Vec3> {
+        let out = hybrid_rollout(net, &bb, &scene, &history, opts(1)).unwrap();
+        out.positions[0]
+            .iter()
+            .zip(&sim[1])
+            .map(|(a, b)| *a - *b)
+            .collect()
+    };
+    let each: Vec<Vec<Vec3>> = nets.iter().map(offsets).collect();
+    let ens = ResidualNet::ensemble(nets).unwrap();
+    let mean = offsets(&ens);
+    let largest = each
+        .iter()
+        .flatten()
+        .map(|d| d.length())
+        .fold(0.0f32, f32::max);
+    assert!(largest > 1e-6, "the members move nothing");
+    let mut apart = 0.0f32;
+    for (i, m) in mean.iter().enumerate() {
+        let expect = (each[0][i] + each[1][i] + each[2][i]) / 3.0;
+        assert!((*m - expect).length() <= 1e-3 * largest, "{m} vs {expect}");
+        apart = apart.max((*m - each[0][i]).length());
+    }
+    assert!(apart > 1e-2 * largest, "the mean equals member 0");
+}
+
+/// An ensemble saves to one file pair and reloads to identical predictions; a single
+/// network's JSON keeps its old form (no member count).
+#[test]
+fn an_ensemble_reloads_exactly() {
+    let (_, _, scene, history, bb) = common::scene("rope", 0);
+    let cfg = ModelConfig::tiny();
+    let ens = ResidualNet::ensemble(vec![
+        ResidualNet::new(&cfg, 1).unwrap(),
+        ResidualNet::new(&cfg, 2).unwrap(),
+    ])
+    .unwrap();
+    let dir = common::temp_dir("ensemble");
+    let path = dir.join("residual.safetensors");
+    ens.save(&path).unwrap();
+    let json = std::fs::read_to_string(path.with_extension("json")).unwrap();
+    assert!(json.contains("\"ensemble_members\": 2"), "{json}");
+    let back = ResidualNet::load(&path).unwrap();
+    assert_eq!(back.ensemble_size(), 2);
+    assert_eq!(back.config(), ens.config());
+    let a = hybrid_rollout(&ens, &bb, &scene, &history, opts(4)).unwrap();
+    let b = hybrid_rollout(&back, &bb, &scene, &history, opts(4)).unwrap();
+    assert_eq!(a.positions, b.positions);
+    // Member 0 alone predicts otherwise: the comparison above can fail.
+    let one = ResidualNet::new(&cfg, 1).unwrap();
+    let c = hybrid_rollout(&one, &bb, &scene, &history, opts(4)).unwrap();
+    assert_ne!(a.positions, c.positions);
+    let single = dir.join("single.safetensors");
+    one.save(&single).unwrap();
+    let text = std::fs::read_to_string(single.with_extension("json")).unwrap();
+    assert!(!text.contains("ensemble_members"), "{text}");
+    // A file that names more members than it holds is an error, not a panic.
+    let mut value: serde_json::Value = serde_json::from_str(&json).unwrap();
+    value["ensemble_members"] = 3.into();
+    std::fs::write(path.with_extension("json"), value.to_string()).unwrap();
+    let err = ResidualNet::load(&path).unwrap_err().to_string();
+    assert!(err.contains("member2"), "{err}");
+    std::fs::remove_dir_all(dir).ok();
+}
+
+/// A gain scales every member; gain 0 is the backbone exactly.
+#[test]
+fn a_gain_applies_to_every_member() {
+    let (_, _, scene, history, bb) = common::scene("rope", 1);
+    let sim = bb.rollout(&scene.init, &scene.actions).unwrap().positions;
+    let cfg = ModelConfig::tiny();
+    let ens = ResidualNet::ensemble(vec![
+        ResidualNet::new(&cfg, 4).unwrap(),
+        ResidualNet::new(&cfg, 5).unwrap(),
+    ])
+    .unwrap();
+    let quiet = ens.without_residual().unwrap();
+    assert_eq!(quiet.ensemble_size(), 2);
+    let out = hybrid_rollout(&quiet, &bb, &scene, &history, opts(3)).unwrap();
+    assert_eq!(out.positions[..], sim[1..4]);
+    let half = ens.with_residual_gain(0.5).unwrap();
+    assert_eq!(half.ensemble_size(), 2);
+    assert_eq!(half.config().residual_scale, 0.5 * cfg.residual_scale);
+}
+
+/// Training an ensemble as a whole is refused (its members are trained one by one).
+#[test]
+fn an_ensemble_cannot_be_trained() {
+    let (_, _, scene, history, bb) = common::scene("rope", 0);
+    let cfg = ModelConfig::tiny();
+    let ens = ResidualNet::ensemble(vec![
+        ResidualNet::new(&cfg, 1).unwrap(),
+        ResidualNet::new(&cfg, 2).unwrap(),
+    ])
+    .unwrap();
+    let train = RolloutOptions {
+        steps: 2,
+        train: true,
+        ..Default::default()
+    };
+    let err = hybrid_rollout(&ens, &bb, &scene, &history, train).unwrap_err();
+    assert!(err.to_string().contains("ensemble"), "{err}");
+    let Err(err) = Trainer::new(ens, TrainConfig::default()) else {
+        panic!("training an ensemble was accepted");
+    };
+    assert!(err.to_string().contains("ensemble"), "{err}");
+}
