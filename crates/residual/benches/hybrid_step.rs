@@ -1,5 +1,5 @@
-//! Cost of one hybrid step (backbone + residual network) and of one training rollout
-//! (5 steps, forward and backward) for a 1000-particle cloth.
+//! Cost of one hybrid step (backbone + residual network, and with an ensemble of four) and of
+//! one training rollout (5 steps, forward and backward) for a 1000-particle cloth.
 //!
 //! `RAYON_NUM_THREADS=1 cargo bench -p pgrd-residual --bench hybrid_step`
 
@@ -71,6 +71,20 @@ fn bench(c: &mut Criterion) {
             ..Default::default()
         };
         b.iter(|| hybrid_rollout(&net, &bb, &scene, &history, opts).unwrap())
+    });
+    // An ensemble evaluates every member each step (`docs/residual.md`, "Ensembles").
+    let ensemble = ResidualNet::ensemble(
+        (0..4)
+            .map(|seed| ResidualNet::new(&ModelConfig::default(), seed).unwrap())
+            .collect(),
+    )
+    .unwrap();
+    g.bench_function("hybrid_step_ensemble_of_4", |b| {
+        let opts = RolloutOptions {
+            steps: 1,
+            ..Default::default()
+        };
+        b.iter(|| hybrid_rollout(&ensemble, &bb, &scene, &history, opts).unwrap())
     });
     g.sample_size(10);
     g.bench_function("train_rollout_5_steps_fwd_bwd", |b| {

@@ -4,8 +4,9 @@
 //! `Δv = (1/K) Σ_k Δv_k`. Each member's residual is bounded, so the mean is too.
 //!
 //! Networks trained on a few hundred recordings differ from seed to seed and from checkpoint to
-//! checkpoint by as much as they gain over the backbone (`docs/residual.md`, "Ensembles");
-//! averaging their predictions removes the part of each one's error the others do not share.
+//! checkpoint by as much as they gain over the backbone; averaging their predictions removes
+//! the part of each one's error the others do not share. Measured (`docs/residual.md`,
+//! "Ensembles"): four seeds lowered the sloth's val MDE by 0.6 % and not the rope's.
 //! An ensemble costs K network evaluations per step and cannot be trained as a whole: train
 //! the members, then combine them with [`ResidualNet::ensemble`].
 

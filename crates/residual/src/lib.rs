@@ -10,7 +10,8 @@
 //! and a learned gate: `Δv = s ((1 − g) r + g δ)`, `s = 0.1 m/s`.
 //!
 //! [`hybrid_rollout`] runs backbone and network together; [`Trainer`] trains on 5-step
-//! rollouts drawn from a [`TrainSet`]; [`TrainSet::oracle_mde_cm`] measures how much a
+//! rollouts drawn from a [`TrainSet`]; [`ResidualNet::ensemble`] makes trained networks act as
+//! one (their mean residual); [`TrainSet::oracle_mde_cm`] measures how much a
 //! corrector held to a given bound could gain at all. Architecture, sizes, normalisation,
 //! costs and deviations from the paper: `docs/residual.md`.
 //!
