@@ -40,6 +40,10 @@ enum MemberStep {
     BestTrained,
 }
 
+/// File name of the record an ensemble's run holds (what was combined); `train` refuses runs
+/// that have one.
+pub const RECORD: &str = "ensemble.json";
+
 /// One member as recorded in ensemble.json.
 #[derive(Debug, Serialize)]
 struct Member {
@@ -186,7 +190,7 @@ pub fn run(args: &EnsembleArgs) -> anyhow::Result<()> {
         }
     }
     let out_net = args.run.join("residual.safetensors");
-    if out_net.exists() && !args.run.join("ensemble.json").exists() {
+    if out_net.exists() && !args.run.join(RECORD).exists() {
         bail!(
             "{} already holds a trained network; write the ensemble to a new run directory",
             args.run.display()
@@ -217,7 +221,7 @@ pub fn run(args: &EnsembleArgs) -> anyhow::Result<()> {
         "members": members,
     });
     dataset::write_atomic(
-        &args.run.join("ensemble.json"),
+        &args.run.join(RECORD),
         serde_json::to_string_pretty(&record)?.as_bytes(),
     )?;
     for (k, m) in members.iter().enumerate() {

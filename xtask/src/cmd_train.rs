@@ -433,6 +433,14 @@ fn floats(v: &serde_json::Value, key: &str) -> Vec<f64> {
 /// Trains the residual network and writes the run's files; with several bounds, start modes or
 /// losses, one network per combination and the held-out episodes' choice (`crate::train_choice`).
 pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
+    // Training writes residual.safetensors; in an ensemble's run that file is the ensemble,
+    // which the run's ensemble.json only describes, so it would be lost.
+    anyhow::ensure!(
+        !args.run.join(crate::cmd_ensemble::RECORD).exists(),
+        "{} holds an ensemble (`cargo xtask ensemble`), which training would overwrite; \
+         train into a new run directory",
+        args.run.display()
+    );
     match (
         args.residual_scale.len(),
         args.start_from.len(),
@@ -804,6 +812,24 @@ pub(crate) fn above_bars(bars: Option<&indicatif::MultiProgress>, print: impl Fn
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn an_ensembles_run_is_not_trained_over() {
+        #[derive(clap::Parser)]
+        struct Cli {
+            #[command(flatten)]
+            train: TrainArgs,
+        }
+        let dir = std::env::temp_dir().join(format!("pgrd-train-ens-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        std::fs::write(dir.join(crate::cmd_ensemble::RECORD), "{}").unwrap();
+        let run_dir = dir.to_str().unwrap();
+        let argv = ["train", "--data", "no-such-data", "--run", run_dir];
+        let args = <Cli as clap::Parser>::try_parse_from(argv).unwrap().train;
+        let err = run(&args).unwrap_err().to_string();
+        assert!(err.contains("holds an ensemble"), "{err}");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 
     #[test]
     fn init_from_loads_the_same_weights_and_refuses_another_configuration() {
