@@ -6,6 +6,16 @@ mod common;
 use glam::Vec3;
 use residual::{ModelConfig, ResidualNet, RolloutOptions, TrainConfig, Trainer, hybrid_rollout};
 
+/// An ensemble of two tiny networks of seeds 1 and 2.
+fn two_tiny_networks() -> ResidualNet {
+    let cfg = ModelConfig::tiny();
+    ResidualNet::ensemble(vec![
+        ResidualNet::new(&cfg, 1).unwrap(),
+        ResidualNet::new(&cfg, 2).unwrap(),
+    ])
+    .unwrap()
+}
+
 fn opts(steps: usize) -> RolloutOptions {
     RolloutOptions {
         steps,
@@ -70,11 +80,7 @@ fn the_first_residual_is_the_members_mean() {
 fn an_ensemble_reloads_exactly() {
     let (_, _, scene, history, bb) = common::scene("rope", 0);
     let cfg = ModelConfig::tiny();
-    let ens = ResidualNet::ensemble(vec![
-        ResidualNet::new(&cfg, 1).unwrap(),
-        ResidualNet::new(&cfg, 2).unwrap(),
-    ])
-    .unwrap();
+    let ens = two_tiny_networks();
     let dir = common::temp_dir("ensemble");
     let path = dir.join("residual.safetensors");
     ens.save(&path).unwrap();
@@ -127,12 +133,7 @@ fn a_gain_applies_to_every_member() {
 #[test]
 fn an_ensemble_cannot_be_trained() {
     let (_, _, scene, history, bb) = common::scene("rope", 0);
-    let cfg = ModelConfig::tiny();
-    let ens = ResidualNet::ensemble(vec![
-        ResidualNet::new(&cfg, 1).unwrap(),
-        ResidualNet::new(&cfg, 2).unwrap(),
-    ])
-    .unwrap();
+    let ens = two_tiny_networks();
     let train = RolloutOptions {
         steps: 2,
         train: true,
