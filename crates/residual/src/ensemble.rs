@@ -7,7 +7,7 @@
 //! checkpoint by as much as they gain over the backbone; averaging their predictions removes
 //! the part of each one's error the others do not share. Measured (`docs/residual.md`,
 //! "Ensembles"): four seeds lowered the sloth's val MDE by 0.6 % and DLO1's by 2.1 %; on the
-//! rope, DLO2 and DLO3 the best single seed was better on held-out recordings.
+//! rope, the paper, DLO2 and DLO3 they did not beat the best seed on held-out recordings.
 //! An ensemble costs K network evaluations per step and cannot be trained as a whole: train
 //! the members, then combine them with [`ResidualNet::ensemble`].
 
