@@ -96,12 +96,7 @@ impl ResidualNet {
                 tensors.insert(format!("member{k}.{name}"), var.as_tensor().clone());
             }
         }
-        let tmp = path.with_extension("safetensors.tmp");
-        candle_core::safetensors::save(&tensors, &tmp)?;
-        std::fs::rename(&tmp, path).map_err(|source| ResidualError::Io {
-            path: path.display().to_string(),
-            source,
-        })?;
+        crate::model::save_tensors_atomic(&tensors, path)?;
         let json = path.with_extension("json");
         let mut value =
             serde_json::to_value(self.config()).map_err(|source| ResidualError::Json {

@@ -597,6 +597,20 @@ impl ResidualNet {
     }
 }
 
+/// Writes `tensors` to `path` (safetensors) through a temporary file beside it, renamed into
+/// place, so an interrupted write never leaves a truncated file under the final name.
+pub(crate) fn save_tensors_atomic(
+    tensors: &std::collections::HashMap<String, Tensor>,
+    path: &Path,
+) -> Result<()> {
+    let tmp = path.with_extension("tmp");
+    candle_core::safetensors::save(tensors, &tmp)?;
+    std::fs::rename(&tmp, path).map_err(|source| ResidualError::Io {
+        path: path.display().to_string(),
+        source,
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use glam::Vec3;

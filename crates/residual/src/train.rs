@@ -795,12 +795,7 @@ impl Trainer {
             map.insert(format!("start.{e}.x"), stack(&traj.x, self.net.device())?);
             map.insert(format!("start.{e}.v"), stack(&traj.v, self.net.device())?);
         }
-        let tmp = path.with_extension("tmp");
-        candle_core::safetensors::save(&map, &tmp)?;
-        std::fs::rename(&tmp, path).map_err(|source| ResidualError::Io {
-            path: path.display().to_string(),
-            source,
-        })?;
+        crate::model::save_tensors_atomic(&map, path)?;
         let json = path.with_extension("json");
         let text =
             serde_json::json!({ "step": self.step, "model": self.net.config(), "train": self.cfg })
