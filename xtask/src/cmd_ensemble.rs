@@ -31,6 +31,17 @@ pub struct EnsembleArgs {
     /// excluded; needs `train --holdout`).
     #[arg(long, value_enum, default_value = "selected")]
     member_step: MemberStep,
+    /// How the members' residuals combine: `mean`, or `agreement` (the mean shrunk per
+    /// particle by |m|² / (|m|² + s²) where the members disagree; `residual::EnsembleRule`).
+    #[arg(long, value_enum, default_value = "mean")]
+    rule: Rule,
+}
+
+#[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize)]
+#[serde(rename_all = "kebab-case")]
+enum Rule {
+    Mean,
+    Agreement,
 }
 
 #[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize)]
@@ -208,7 +219,10 @@ pub fn run(args: &EnsembleArgs) -> anyhow::Result<()> {
                 .with_context(|| format!("loading {}", m.file.display()))
         })
         .collect::<anyhow::Result<Vec<_>>>()?;
-    let ensemble = residual::ResidualNet::ensemble(nets)?;
+    let ensemble = residual::ResidualNet::ensemble(nets)?.with_ensemble_rule(match args.rule {
+        Rule::Mean => residual::EnsembleRule::Mean,
+        Rule::Agreement => residual::EnsembleRule::Agreement,
+    });
     std::fs::create_dir_all(&args.run)
         .with_context(|| format!("creating {}", args.run.display()))?;
     dataset::write_atomic(&common::backbone_path(&args.run), &backbone)?;
@@ -218,6 +232,7 @@ pub fn run(args: &EnsembleArgs) -> anyhow::Result<()> {
     let record = serde_json::json!({
         "backbone_run": backbone_run,
         "member_step": args.member_step,
+        "rule": args.rule,
         "members": members,
     });
     dataset::write_atomic(
@@ -305,6 +320,7 @@ mod tests {
             run: out.clone(),
             backbone_run: None,
             member_step: MemberStep::Selected,
+            rule: Rule::Mean,
         };
         let err = run(&args(vec![a.clone(), b.clone()]))
             .unwrap_err()

@@ -135,7 +135,7 @@ fn run_group<'a>(net: &ResidualNet, mut live: Vec<Live<'a>>) -> Result<Vec<(usiz
             .flat_map(|l| l.centred.iter().flat_map(|p| p.to_array()))
             .collect();
         let pos = Tensor::from_vec(centred, (rows, 3), dev)?;
-        let mut delta: Vec<f32> = Vec::new();
+        let mut deltas = Vec::with_capacity(members.len());
         for ((member, window), temporal) in members.iter().zip(&mut windows).zip(&temporal) {
             window.push(
                 member
@@ -147,17 +147,9 @@ fn run_group<'a>(net: &ResidualNet, mut live: Vec<Live<'a>>) -> Result<Vec<(usiz
                 window.remove(0);
             }
             let rows_of: Vec<&[f32]> = window.iter().map(Vec::as_slice).collect();
-            let d = member.aggregate_rows(temporal.as_ref(), &rows_of, rows);
-            if delta.is_empty() {
-                delta = d;
-            } else {
-                delta.iter_mut().zip(&d).for_each(|(s, x)| *s += x);
-            }
+            deltas.push(member.aggregate_rows(temporal.as_ref(), &rows_of, rows));
         }
-        if members.len() > 1 {
-            let k = members.len() as f32;
-            delta.iter_mut().for_each(|s| *s /= k);
-        }
+        let delta = crate::ensemble::combine_rows(deltas, net.ensemble_rule());
         let mut rest = delta.as_slice();
         for l in &mut live {
             let (head, tail) = rest.split_at(3 * l.n);

@@ -10,6 +10,12 @@
 //! rope, the paper, DLO2 and DLO3 they did not beat the best seed on held-out recordings.
 //! An ensemble costs K network evaluations per step and cannot be trained as a whole: train
 //! the members, then combine them with [`ResidualNet::ensemble`].
+//!
+//! [`EnsembleRule::Agreement`] (session 65) shrinks the mean where the members disagree, per
+//! particle: `Δv = m |m|² / (|m|² + s²)`, with `m` the members' mean and `s²` their mean
+//! squared distance from it. Members that agree keep their mean; members that point every
+//! which way (inputs unlike their training data, e.g. a planner's own motions) leave the
+//! backbone nearly alone. It has no parameter; the factor is in `[0, 1]`, so the bound holds.
 
 use std::collections::HashMap;
 use std::path::Path;
@@ -20,6 +26,19 @@ use crate::{ModelConfig, ResidualError, ResidualNet, Result};
 
 /// Key of the member count in an ensemble's JSON (absent for a single network).
 const MEMBERS_KEY: &str = "ensemble_members";
+/// Key of the rule in an ensemble's JSON (absent for [`EnsembleRule::Mean`]).
+const RULE_KEY: &str = "ensemble_rule";
+
+/// How an ensemble turns its members' residuals into one (see the module docs).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum EnsembleRule {
+    /// The members' mean.
+    #[default]
+    Mean,
+    /// The members' mean, shrunk per particle by `|m|² / (|m|² + s²)`.
+    Agreement,
+}
 
 impl ResidualNet {
     /// One model made of `nets` (at least one, all of one configuration): its residual is the
@@ -66,6 +85,27 @@ impl ResidualNet {
         Ok(first)
     }
 
+    /// The same ensemble combining its members by `rule` (a single network is unaffected).
+    ///
+    /// ```
+    /// use residual::{EnsembleRule, ModelConfig, ResidualNet};
+    /// let cfg = ModelConfig::tiny();
+    /// let pair = ResidualNet::ensemble(vec![ResidualNet::new(&cfg, 1)?, ResidualNet::new(&cfg, 2)?])?;
+    /// assert_eq!(pair.ensemble_rule(), EnsembleRule::Mean);
+    /// let cautious = pair.with_ensemble_rule(EnsembleRule::Agreement);
+    /// assert_eq!(cautious.ensemble_rule(), EnsembleRule::Agreement);
+    /// # Ok::<(), residual::ResidualError>(())
+    /// ```
+    pub fn with_ensemble_rule(mut self, rule: EnsembleRule) -> ResidualNet {
+        self.rule = rule;
+        self
+    }
+
+    /// How this ensemble combines its members' residuals.
+    pub fn ensemble_rule(&self) -> EnsembleRule {
+        self.rule
+    }
+
     /// Number of networks whose residuals this model averages (1 for a single network).
     pub fn ensemble_size(&self) -> usize {
         1 + self.members.len()
@@ -83,6 +123,7 @@ impl ResidualNet {
     ) -> Result<ResidualNet> {
         let mut first = f(self)?;
         first.members = self.members.iter().map(f).collect::<Result<_>>()?;
+        first.rule = self.rule;
         Ok(first)
     }
 
@@ -105,6 +146,14 @@ impl ResidualNet {
             })?;
         if let Some(map) = value.as_object_mut() {
             map.insert(MEMBERS_KEY.into(), self.ensemble_size().into());
+            if self.rule != EnsembleRule::Mean {
+                let rule =
+                    serde_json::to_value(self.rule).map_err(|source| ResidualError::Json {
+                        path: json.display().to_string(),
+                        source,
+                    })?;
+                map.insert(RULE_KEY.into(), rule);
+            }
         }
         let text = serde_json::to_string_pretty(&value).map_err(|source| ResidualError::Json {
             path: json.display().to_string(),
@@ -114,7 +163,12 @@ impl ResidualNet {
     }
 
     /// [`ResidualNet::load`] of an ensemble of `members` networks of configuration `cfg`.
-    pub(crate) fn load_ensemble(path: &Path, cfg: &ModelConfig, members: usize) -> Result<Self> {
+    pub(crate) fn load_ensemble(
+        path: &Path,
+        cfg: &ModelConfig,
+        members: usize,
+        rule: EnsembleRule,
+    ) -> Result<Self> {
         let tensors = candle_core::safetensors::load(path, &Device::Cpu)?;
         let mut nets = Vec::with_capacity(members);
         for k in 0..members {
@@ -128,34 +182,103 @@ impl ResidualNet {
             }
             nets.push(net);
         }
-        ResidualNet::ensemble(nets)
+        Ok(ResidualNet::ensemble(nets)?.with_ensemble_rule(rule))
     }
 }
 
-/// The configuration and member count (1 for a single network) of a saved network's JSON.
+/// What a saved network's JSON holds besides its configuration.
+pub(crate) struct SavedEnsemble {
+    /// Member count (1 for a single network).
+    pub members: usize,
+    pub rule: EnsembleRule,
+}
+
+/// The configuration, member count and rule of a saved network's JSON.
 pub(crate) fn parse_saved_config(
     text: &str,
-) -> std::result::Result<(ModelConfig, usize), serde_json::Error> {
+) -> std::result::Result<(ModelConfig, SavedEnsemble), serde_json::Error> {
     let mut value: serde_json::Value = serde_json::from_str(text)?;
-    let members = value
-        .as_object_mut()
-        .and_then(|m| m.remove(MEMBERS_KEY))
+    let mut take = |key: &str| value.as_object_mut().and_then(|m| m.remove(key));
+    let members = take(MEMBERS_KEY)
         .map(serde_json::from_value::<usize>)
         .transpose()?
         .unwrap_or(1);
-    Ok((serde_json::from_value(value)?, members))
+    let rule = take(RULE_KEY)
+        .map(serde_json::from_value::<EnsembleRule>)
+        .transpose()?
+        .unwrap_or_default();
+    Ok((
+        serde_json::from_value(value)?,
+        SavedEnsemble { members, rule },
+    ))
 }
 
-/// The mean of the members' residuals (the one residual itself, untouched, for one member).
-pub(crate) fn mean(deltas: Vec<Tensor>) -> Result<Tensor> {
+/// The members' residuals `(N, 3)` combined by `rule` (the one residual itself, untouched, for
+/// one member).
+pub(crate) fn combine(deltas: Vec<Tensor>, rule: EnsembleRule) -> Result<Tensor> {
     let k = deltas.len();
-    let mut it = deltas.into_iter();
-    let first = it
-        .next()
-        .ok_or_else(|| ResidualError::Input("an ensemble without members".into()))?;
     if k == 1 {
-        return Ok(first);
+        return deltas
+            .into_iter()
+            .next()
+            .ok_or_else(|| ResidualError::Input("an ensemble without members".into()));
     }
-    let sum = it.try_fold(first, |s, d| s + d)?;
-    Ok((sum / k as f64)?)
+    let mean = mean(&deltas)?;
+    match rule {
+        EnsembleRule::Mean => Ok(mean),
+        EnsembleRule::Agreement => {
+            let mut spread = mean.zeros_like()?;
+            for d in &deltas {
+                spread = (spread + (d - &mean)?.sqr()?)?;
+            }
+            let spread = (spread.sum_keepdim(1)? / k as f64)?;
+            let size = mean.sqr()?.sum_keepdim(1)?;
+            // Where mean and spread are both 0 the mean is 0 too; any factor gives 0 then.
+            let total = (&size + spread)?.maximum(f64::from(f32::MIN_POSITIVE))?;
+            Ok(mean.broadcast_mul(&(size / total)?)?)
+        }
+    }
+}
+
+/// The members' mean residual.
+fn mean(deltas: &[Tensor]) -> Result<Tensor> {
+    let (first, rest) = deltas
+        .split_first()
+        .ok_or_else(|| ResidualError::Input("an ensemble without members".into()))?;
+    let sum = rest.iter().try_fold(first.clone(), |s, d| s + d)?;
+    Ok((sum / deltas.len() as f64)?)
+}
+
+/// [`combine`] on flat rows `[x, y, z, x, y, z, ...]`, one vector per member.
+pub(crate) fn combine_rows(deltas: Vec<Vec<f32>>, rule: EnsembleRule) -> Vec<f32> {
+    let k = deltas.len();
+    let mut it = deltas.iter();
+    let Some(first) = it.next() else {
+        return Vec::new();
+    };
+    let mut mean = first.clone();
+    for d in it {
+        mean.iter_mut().zip(d).for_each(|(s, x)| *s += x);
+    }
+    if k == 1 {
+        return mean;
+    }
+    mean.iter_mut().for_each(|s| *s /= k as f32);
+    if rule == EnsembleRule::Agreement {
+        for (i, m) in mean.chunks_exact_mut(3).enumerate() {
+            let mut spread = 0.0f32;
+            for axis in 0..3 {
+                let mut s = 0.0f32;
+                for d in &deltas {
+                    s += (d[3 * i + axis] - m[axis]).powi(2);
+                }
+                spread += s;
+            }
+            let spread = spread / k as f32;
+            let size: f32 = m.iter().map(|x| x * x).sum();
+            let factor = size / (size + spread).max(f32::MIN_POSITIVE);
+            m.iter_mut().for_each(|x| *x *= factor);
+        }
+    }
+    mean
 }

@@ -11,7 +11,8 @@
 //!
 //! [`hybrid_rollout`] runs backbone and network together; [`Trainer`] trains on 5-step
 //! rollouts drawn from a [`TrainSet`]; [`ResidualNet::ensemble`] makes trained networks act as
-//! one (their mean residual); [`TrainSet::oracle_mde_cm`] measures how much a
+//! one (their mean residual, or with [`EnsembleRule::Agreement`] that mean shrunk where they
+//! disagree); [`TrainSet::oracle_mde_cm`] measures how much a
 //! corrector held to a given bound could gain at all. Architecture, sizes, normalisation,
 //! costs and deviations from the paper: `docs/residual.md`.
 //!
@@ -48,6 +49,7 @@ mod train;
 pub use augment::{rotate_history, rotate_scene};
 pub use batch::{JobResult, PredictJob, predict_batch};
 pub use config::{Combine, EncoderKind, InputConvention, ModelConfig, ResidualKind};
+pub use ensemble::EnsembleRule;
 pub use error::{ResidualError, Result};
 pub use loss::{DISTANCE_EPS_CM, TrainLoss};
 pub use model::{GRIPPER_INPUTS, GROUND_INPUTS, INPUTS, REST_INPUTS, ResidualNet};

@@ -149,6 +149,8 @@ pub struct ResidualNet {
     device: Device,
     /// The other members of an ensemble (`crate::ensemble`); empty for a single network.
     pub(crate) members: Vec<ResidualNet>,
+    /// How an ensemble combines its members' residuals.
+    pub(crate) rule: crate::EnsembleRule,
 }
 
 impl std::fmt::Debug for ResidualNet {
@@ -235,6 +237,7 @@ impl ResidualNet {
             temporal,
             device,
             members: Vec::new(),
+            rule: crate::EnsembleRule::Mean,
         };
         net.init(seed)?;
         Ok(net)
@@ -398,13 +401,13 @@ impl ResidualNet {
             path: json.display().to_string(),
             source,
         })?;
-        let (cfg, members) =
+        let (cfg, saved) =
             crate::ensemble::parse_saved_config(&text).map_err(|source| ResidualError::Json {
                 path: json.display().to_string(),
                 source,
             })?;
-        if members != 1 {
-            return Self::load_ensemble(path, &cfg, members);
+        if saved.members != 1 {
+            return Self::load_ensemble(path, &cfg, saved.members, saved.rule);
         }
         let mut net = ResidualNet::new(&cfg, 0).map_err(|e| match e {
             ResidualError::Config(m) => ResidualError::Config(format!("{}: {m}", json.display())),
@@ -441,7 +444,7 @@ impl ResidualNet {
             let r = m.decode(feats, &p, &st, [0, 1, 2, 3], Pass::Grad)?;
             deltas.push(m.aggregate(&[r], Pass::Grad)?);
         }
-        crate::ensemble::mean(deltas)
+        crate::ensemble::combine(deltas, self.rule)
     }
 
     /// Decoder output `r ∈ (−1, 1)^3` per particle from the `(N, input_dim)` features and the

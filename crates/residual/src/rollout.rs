@@ -441,7 +441,8 @@ fn run(
             }
             deltas.push(member.aggregate(window, Pass::Grad)?);
         }
-        let delta = crate::ensemble::mean(deltas)?.broadcast_mul(&corrected)?;
+        let delta =
+            crate::ensemble::combine(deltas, net.ensemble_rule())?.broadcast_mul(&corrected)?;
         let (nx, nv) = match cfg.residual {
             ResidualKind::Velocity => ((&x_sim + (&delta * f64::from(dt))?)?, (&v_sim + &delta)?),
             ResidualKind::Position => ((&x_sim + (&delta * f64::from(dt))?)?, v_sim.clone()),

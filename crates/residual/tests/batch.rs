@@ -142,6 +142,17 @@ fn a_batch_predicts_what_each_rollout_predicts_alone() {
     ])
     .unwrap();
     assert_batch_matches(&ens, &[&a, &b, &c], &[5, 3, 5]);
+    // Two copies of one network and another, of the default size: they agree enough for the
+    // shrunk residual to move points (two random tiny members disagree so much it would not).
+    let cfg = ModelConfig::default();
+    let agreeing = ResidualNet::ensemble(vec![
+        ResidualNet::new(&cfg, 4).unwrap(),
+        ResidualNet::new(&cfg, 4).unwrap(),
+        ResidualNet::new(&cfg, 5).unwrap(),
+    ])
+    .unwrap()
+    .with_ensemble_rule(residual::EnsembleRule::Agreement);
+    assert_batch_matches(&agreeing, &[&a, &b, &c], &[5, 3, 5]);
 }
 
 /// Largest distance between the particles `idx` of two rollouts, m.

@@ -4,7 +4,9 @@
 mod common;
 
 use glam::Vec3;
-use residual::{ModelConfig, ResidualNet, RolloutOptions, TrainConfig, Trainer, hybrid_rollout};
+use residual::{
+    EnsembleRule, ModelConfig, ResidualNet, RolloutOptions, TrainConfig, Trainer, hybrid_rollout,
+};
 
 /// An ensemble of two tiny networks of seeds 1 and 2.
 fn two_tiny_networks() -> ResidualNet {
@@ -36,6 +38,65 @@ fn an_ensemble_of_copies_is_the_network() {
     assert_eq!(pair.parameter_count(), 2 * net.parameter_count());
     let out = hybrid_rollout(&pair, &bb, &scene, &history, opts(5)).unwrap();
     assert_eq!(out.positions, single.positions);
+    // Copies agree everywhere, so the agreement rule keeps their mean untouched.
+    let agreeing = pair.with_ensemble_rule(EnsembleRule::Agreement);
+    let out = hybrid_rollout(&agreeing, &bb, &scene, &history, opts(5)).unwrap();
+    assert_eq!(out.positions, single.positions);
+}
+
+/// After one step, the agreement rule's offset from the backbone is the members' mean offset
+/// shrunk per particle by |m|² / (|m|² + s²), s² the members' mean squared distance from m:
+/// never longer than the mean, and shorter where the members disagree.
+#[test]
+fn agreement_shrinks_the_mean_where_members_disagree() {
+    let (_, _, scene, history, bb) = common::scene("rope", 1);
+    let sim = bb.rollout(&scene.init, &scene.actions).unwrap().positions;
+    let cfg = ModelConfig::tiny();
+    let nets: Vec<ResidualNet> = (0..3)
+        .map(|s| ResidualNet::new(&cfg, 20 + s).unwrap())
+        .collect();
+    let offsets = |net: &ResidualNet| -> Vec<Vec3> {
+        let out = hybrid_rollout(net, &bb, &scene, &history, opts(1)).unwrap();
+        out.positions[0]
+            .iter()
+            .zip(&sim[1])
+            .map(|(a, b)| *a - *b)
+            .collect()
+    };
+    let each: Vec<Vec<Vec3>> = nets.iter().map(offsets).collect();
+    let ens = ResidualNet::ensemble(nets)
+        .unwrap()
+        .with_ensemble_rule(EnsembleRule::Agreement);
+    let got = offsets(&ens);
+    let largest = each
+        .iter()
+        .flatten()
+        .map(|d| d.length())
+        .fold(0.0f32, f32::max);
+    assert!(largest > 1e-6, "the members move nothing");
+    let mut shrunk = 0.0f32;
+    for (i, g) in got.iter().enumerate() {
+        let m = (each[0][i] + each[1][i] + each[2][i]) / 3.0;
+        let s2 = each
+            .iter()
+            .map(|e| (e[i] - m).length_squared())
+            .sum::<f32>()
+            / 3.0;
+        let total = m.length_squared() + s2;
+        // Held particles: no member moves them, nor may the rule (no 0 / 0).
+        let expect = if total > 0.0 {
+            m * (m.length_squared() / total)
+        } else {
+            Vec3::ZERO
+        };
+        assert!((*g - expect).length() <= 1e-3 * largest, "{g} vs {expect}");
+        assert!(
+            g.length() <= m.length() + 1e-3 * largest,
+            "{g} longer than {m}"
+        );
+        shrunk = shrunk.max(m.length() - g.length());
+    }
+    assert!(shrunk > 1e-2 * largest, "nothing was shrunk");
 }
 
 /// After one step (same state for every member), the ensemble's offset from the backbone is
@@ -100,6 +161,17 @@ fn an_ensemble_reloads_exactly() {
     one.save(&single).unwrap();
     let text = std::fs::read_to_string(single.with_extension("json")).unwrap();
     assert!(!text.contains("ensemble_members"), "{text}");
+    // The rule travels with the file; the mean's files do not name it.
+    assert!(!json.contains("ensemble_rule"), "{json}");
+    let agreeing = two_tiny_networks().with_ensemble_rule(EnsembleRule::Agreement);
+    let other = dir.join("agreement.safetensors");
+    agreeing.save(&other).unwrap();
+    let back = ResidualNet::load(&other).unwrap();
+    assert_eq!(back.ensemble_rule(), EnsembleRule::Agreement);
+    let a = hybrid_rollout(&agreeing, &bb, &scene, &history, opts(4)).unwrap();
+    let b = hybrid_rollout(&back, &bb, &scene, &history, opts(4)).unwrap();
+    assert_eq!(a.positions, b.positions);
+    assert_ne!(a.positions, c.positions);
     // A file that names more members than it holds is an error, not a panic.
     let mut value: serde_json::Value = serde_json::from_str(&json).unwrap();
     value["ensemble_members"] = 3.into();
@@ -124,8 +196,12 @@ fn a_gain_applies_to_every_member() {
     assert_eq!(quiet.ensemble_size(), 2);
     let out = hybrid_rollout(&quiet, &bb, &scene, &history, opts(3)).unwrap();
     assert_eq!(out.positions[..], sim[1..4]);
-    let half = ens.with_residual_gain(0.5).unwrap();
+    let half = ens
+        .with_ensemble_rule(EnsembleRule::Agreement)
+        .with_residual_gain(0.5)
+        .unwrap();
     assert_eq!(half.ensemble_size(), 2);
+    assert_eq!(half.ensemble_rule(), EnsembleRule::Agreement);
     assert_eq!(half.config().residual_scale, 0.5 * cfg.residual_scale);
 }
 
