@@ -378,12 +378,18 @@ impl ResidualNet {
 
     /// Writes the parameters to `path` (safetensors) and the configuration to `path` with the
     /// extension `json` (an ensemble: every member's parameters under `member<k>.` and the
-    /// member count in the JSON, see [`ResidualNet::ensemble`]).
+    /// member count in the JSON, see [`ResidualNet::ensemble`]). Each file is written beside
+    /// its path and renamed into place, so an interrupted save leaves the old files whole.
     pub fn save(&self, path: &Path) -> Result<()> {
         if !self.members.is_empty() {
             return self.save_ensemble(path);
         }
-        self.varmap.save(path)?;
+        let tensors = self
+            .named_vars()
+            .into_iter()
+            .map(|(name, var)| (name, var.as_tensor().clone()))
+            .collect();
+        save_tensors_atomic(&tensors, path)?;
         let json = path.with_extension("json");
         let text =
             serde_json::to_string_pretty(&self.cfg).map_err(|source| ResidualError::Json {

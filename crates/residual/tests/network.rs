@@ -152,6 +152,22 @@ fn checkpoint_reloads_to_identical_predictions() {
     let other = ResidualNet::new(&ModelConfig::tiny(), 6).unwrap();
     let c = hybrid_rollout(&other, &bb, &scene, &history, opts).unwrap();
     assert_ne!(a.positions, c.positions);
+    // Saving over a checkpoint replaces it whole and leaves no temporary file behind.
+    other.save(&path).unwrap();
+    let replaced = ResidualNet::load(&path).unwrap();
+    let d = hybrid_rollout(&replaced, &bb, &scene, &history, opts).unwrap();
+    assert_eq!(d.positions, c.positions);
+    let mut files: Vec<String> = std::fs::read_dir(&dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    files.sort();
+    assert_eq!(files, ["residual.json", "residual.safetensors"]);
+    // A directory that does not exist is an error, not a panic.
+    assert!(
+        net.save(&dir.join("missing").join("r.safetensors"))
+            .is_err()
+    );
     // A configuration from before the input convention was recorded (absolute positions) is
     // refused with a message naming the file, not run with the wrong inputs.
     let json = path.with_extension("json");
