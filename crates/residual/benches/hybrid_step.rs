@@ -1,4 +1,5 @@
-//! Cost of one hybrid step (backbone + residual network, and with an ensemble of four) and of
+//! Cost of one hybrid step (backbone + residual network, and with an ensemble of four, averaged
+//! or by the agreement rule) and of
 //! one training rollout (5 steps, forward and backward) for a 1000-particle cloth.
 //!
 //! `RAYON_NUM_THREADS=1 cargo bench -p pgrd-residual --bench hybrid_step`
@@ -85,6 +86,15 @@ fn bench(c: &mut Criterion) {
             ..Default::default()
         };
         b.iter(|| hybrid_rollout(&ensemble, &bb, &scene, &history, opts).unwrap())
+    });
+    // The agreement rule adds per-particle arithmetic over the members' residuals.
+    let agreeing = ensemble.with_ensemble_rule(residual::EnsembleRule::Agreement);
+    g.bench_function("hybrid_step_ensemble_of_4_agreement", |b| {
+        let opts = RolloutOptions {
+            steps: 1,
+            ..Default::default()
+        };
+        b.iter(|| hybrid_rollout(&agreeing, &bb, &scene, &history, opts).unwrap())
     });
     g.sample_size(10);
     g.bench_function("train_rollout_5_steps_fwd_bwd", |b| {
