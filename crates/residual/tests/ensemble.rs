@@ -18,6 +18,31 @@ fn two_tiny_networks() -> ResidualNet {
     .unwrap()
 }
 
+/// Offsets from the backbone after one step (the same state for every member) of three tiny
+/// networks of seeds `seed..seed + 3`, each alone and as an ensemble combined by `rule`.
+fn first_step_offsets(seed: u64, rule: EnsembleRule) -> (Vec<Vec<Vec3>>, Vec<Vec3>) {
+    let (_, _, scene, history, bb) = common::scene("rope", 1);
+    let sim = bb.rollout(&scene.init, &scene.actions).unwrap().positions;
+    let cfg = ModelConfig::tiny();
+    let nets: Vec<ResidualNet> = (0..3)
+        .map(|s| ResidualNet::new(&cfg, seed + s).unwrap())
+        .collect();
+    let offsets = |net: &ResidualNet| -> Vec<Vec3> {
+        let out = hybrid_rollout(net, &bb, &scene, &history, opts(1)).unwrap();
+        out.positions[0]
+            .iter()
+            .zip(&sim[1])
+            .map(|(a, b)| *a - *b)
+            .collect()
+    };
+    let each = nets.iter().map(offsets).collect();
+    let ens = ResidualNet::ensemble(nets)
+        .unwrap()
+        .with_ensemble_rule(rule);
+    let combined = offsets(&ens);
+    (each, combined)
+}
+
 fn opts(steps: usize) -> RolloutOptions {
     RolloutOptions {
         steps,
@@ -49,25 +74,7 @@ fn an_ensemble_of_copies_is_the_network() {
 /// never longer than the mean, and shorter where the members disagree.
 #[test]
 fn agreement_shrinks_the_mean_where_members_disagree() {
-    let (_, _, scene, history, bb) = common::scene("rope", 1);
-    let sim = bb.rollout(&scene.init, &scene.actions).unwrap().positions;
-    let cfg = ModelConfig::tiny();
-    let nets: Vec<ResidualNet> = (0..3)
-        .map(|s| ResidualNet::new(&cfg, 20 + s).unwrap())
-        .collect();
-    let offsets = |net: &ResidualNet| -> Vec<Vec3> {
-        let out = hybrid_rollout(net, &bb, &scene, &history, opts(1)).unwrap();
-        out.positions[0]
-            .iter()
-            .zip(&sim[1])
-            .map(|(a, b)| *a - *b)
-            .collect()
-    };
-    let each: Vec<Vec<Vec3>> = nets.iter().map(offsets).collect();
-    let ens = ResidualNet::ensemble(nets)
-        .unwrap()
-        .with_ensemble_rule(EnsembleRule::Agreement);
-    let got = offsets(&ens);
+    let (each, got) = first_step_offsets(20, EnsembleRule::Agreement);
     let largest = each
         .iter()
         .flatten()
@@ -103,23 +110,7 @@ fn agreement_shrinks_the_mean_where_members_disagree() {
 /// the mean of the members' offsets, and differs from each member's.
 #[test]
 fn the_first_residual_is_the_members_mean() {
-    let (_, _, scene, history, bb) = common::scene("rope", 1);
-    let sim = bb.rollout(&scene.init, &scene.actions).unwrap().positions;
-    let cfg = ModelConfig::tiny();
-    let nets: Vec<ResidualNet> = (0..3)
-        .map(|s| ResidualNet::new(&cfg, 10 + s).unwrap())
-        .collect();
-    let offsets = |net: &ResidualNet| -> Vec<Vec3> {
-        let out = hybrid_rollout(net, &bb, &scene, &history, opts(1)).unwrap();
-        out.positions[0]
-            .iter()
-            .zip(&sim[1])
-            .map(|(a, b)| *a - *b)
-            .collect()
-    };
-    let each: Vec<Vec<Vec3>> = nets.iter().map(offsets).collect();
-    let ens = ResidualNet::ensemble(nets).unwrap();
-    let mean = offsets(&ens);
+    let (each, mean) = first_step_offsets(10, EnsembleRule::Mean);
     let largest = each
         .iter()
         .flatten()
