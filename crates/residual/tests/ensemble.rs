@@ -19,8 +19,9 @@ fn two_tiny_networks() -> ResidualNet {
 }
 
 /// Offsets from the backbone after one step (the same state for every member) of three tiny
-/// networks of seeds `seed..seed + 3`, each alone and as an ensemble combined by `rule`.
-fn first_step_offsets(seed: u64, rule: EnsembleRule) -> (Vec<Vec<Vec3>>, Vec<Vec3>) {
+/// networks of seeds `seed..seed + 3`, each alone and as an ensemble combined by `rule`, and
+/// the largest member offset (checked to be above 1 µm, so comparisons with it can fail).
+fn first_step_offsets(seed: u64, rule: EnsembleRule) -> (Vec<Vec<Vec3>>, Vec<Vec3>, f32) {
     let (_, _, scene, history, bb) = common::scene("rope", 1);
     let sim = bb.rollout(&scene.init, &scene.actions).unwrap().positions;
     let cfg = ModelConfig::tiny();
@@ -35,12 +36,18 @@ fn first_step_offsets(seed: u64, rule: EnsembleRule) -> (Vec<Vec<Vec3>>, Vec<Vec
             .map(|(a, b)| *a - *b)
             .collect()
     };
-    let each = nets.iter().map(offsets).collect();
+    let each: Vec<Vec<Vec3>> = nets.iter().map(offsets).collect();
     let ens = ResidualNet::ensemble(nets)
         .unwrap()
         .with_ensemble_rule(rule);
     let combined = offsets(&ens);
-    (each, combined)
+    let largest = each
+        .iter()
+        .flatten()
+        .map(|d| d.length())
+        .fold(0.0f32, f32::max);
+    assert!(largest > 1e-6, "the members move nothing");
+    (each, combined, largest)
 }
 
 fn opts(steps: usize) -> RolloutOptions {
@@ -74,13 +81,7 @@ fn an_ensemble_of_copies_is_the_network() {
 /// never longer than the mean, and shorter where the members disagree.
 #[test]
 fn agreement_shrinks_the_mean_where_members_disagree() {
-    let (each, got) = first_step_offsets(20, EnsembleRule::Agreement);
-    let largest = each
-        .iter()
-        .flatten()
-        .map(|d| d.length())
-        .fold(0.0f32, f32::max);
-    assert!(largest > 1e-6, "the members move nothing");
+    let (each, got, largest) = first_step_offsets(20, EnsembleRule::Agreement);
     let mut shrunk = 0.0f32;
     for (i, g) in got.iter().enumerate() {
         let m = (each[0][i] + each[1][i] + each[2][i]) / 3.0;
@@ -110,13 +111,7 @@ fn agreement_shrinks_the_mean_where_members_disagree() {
 /// the mean of the members' offsets, and differs from each member's.
 #[test]
 fn the_first_residual_is_the_members_mean() {
-    let (each, mean) = first_step_offsets(10, EnsembleRule::Mean);
-    let largest = each
-        .iter()
-        .flatten()
-        .map(|d| d.length())
-        .fold(0.0f32, f32::max);
-    assert!(largest > 1e-6, "the members move nothing");
+    let (each, mean, largest) = first_step_offsets(10, EnsembleRule::Mean);
     let mut apart = 0.0f32;
     for (i, m) in mean.iter().enumerate() {
         let expect = (each[0][i] + each[1][i] + each[2][i]) / 3.0;
