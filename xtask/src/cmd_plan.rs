@@ -28,6 +28,11 @@ pub enum ModelArg {
     /// every executed step by how well each gain predicted the steps executed so far
     /// (`plan::OnlinePgrd`; windows of the planning horizon).
     PgrdOnline,
+    /// Backbone plus each network of the run's ensemble on its own trajectory: every candidate
+    /// is scored by its mean cost over the members plus `--member-risk` times their standard
+    /// deviation (PETS-style trajectory sampling), so a path only some members think good is
+    /// not chosen; executed steps and path errors use the ensemble as one model.
+    PgrdMembers,
     /// The reference world itself, a perfect model: checks whether the planner can solve the
     /// task at all (not a model a user could have).
     World,
@@ -96,6 +101,10 @@ pub struct PlanArgs {
     /// them. Not for rerouting (the dataset format has no obstacles).
     #[arg(long)]
     pub record: Option<PathBuf>,
+    /// `pgrd-members`: weight of the members' disagreement (standard deviation of their
+    /// costs) in a candidate's cost; 0 scores by their mean cost alone.
+    #[arg(long, default_value_t = 0.0)]
+    pub member_risk: f64,
 }
 
 /// One trial in the report.
@@ -147,14 +156,6 @@ pub fn run(args: &PlanArgs) -> anyhow::Result<()> {
         "--record cannot record rerouting: the dataset format has no obstacles, so a model \
          trained on its paths would never see the slot"
     );
-    let backbone = read_backbone(&args.run)?;
-    // The field is per tracked particle of the training data; a task's rope has its own.
-    anyhow::ensure!(
-        backbone.refined.is_none(),
-        "{} holds a refined stiffness field (`cargo xtask refine`), which is placed on the \
-         training data's tracked particles; planning builds its rope from the task",
-        args.run.display()
-    );
     let net = read_residual(&args.run)?.map(std::sync::Arc::new);
     let models = if args.model.is_empty() {
         let mut m = vec![ModelArg::SpringMass];
@@ -165,10 +166,12 @@ pub fn run(args: &PlanArgs) -> anyhow::Result<()> {
     } else {
         args.model.clone()
     };
-    if let Some(m) = models
-        .iter()
-        .find(|m| matches!(m, ModelArg::Pgrd | ModelArg::PgrdOnline))
-        && net.is_none()
+    if let Some(m) = models.iter().find(|m| {
+        matches!(
+            m,
+            ModelArg::Pgrd | ModelArg::PgrdOnline | ModelArg::PgrdMembers
+        )
+    }) && net.is_none()
     {
         anyhow::bail!(
             "--model {} needs {} (run `cargo xtask train` first)",
@@ -176,6 +179,27 @@ pub fn run(args: &PlanArgs) -> anyhow::Result<()> {
             args.run.join("residual.safetensors").display()
         );
     }
+    if models.contains(&ModelArg::PgrdMembers)
+        && let Some(net) = &net
+    {
+        anyhow::ensure!(
+            net.ensemble_size() >= 2,
+            "--model pgrd-members needs an ensemble of networks in {} (`cargo xtask ensemble`); \
+             it holds one network, which is --model pgrd",
+            args.run.display()
+        );
+    }
+    let mut mppi_cfg = kind.mppi();
+    mppi_cfg.member_risk = args.member_risk;
+    mppi_cfg.validate()?;
+    let backbone = read_backbone(&args.run)?;
+    // The field is per tracked particle of the training data; a task's rope has its own.
+    anyhow::ensure!(
+        backbone.refined.is_none(),
+        "{} holds a refined stiffness field (`cargo xtask refine`), which is placed on the \
+         training data's tracked particles; planning builds its rope from the task",
+        args.run.display()
+    );
     let tracked = match args.tracked {
         Some(n) => n,
         None => dataset_particles(&backbone.dataset).unwrap_or(150),
@@ -210,22 +234,40 @@ pub fn run(args: &PlanArgs) -> anyhow::Result<()> {
             let seed = args.seed + t as u64;
             let (mut report, traj) = if m == ModelArg::World {
                 let oracle = WorldOracle::new(task.start.clone());
-                run_trial(&oracle, &mut oracle.system(), task, seed, args.max_steps)?
+                run_trial(
+                    &oracle,
+                    &mut oracle.system(),
+                    task,
+                    mppi_cfg,
+                    seed,
+                    args.max_steps,
+                )?
             } else if let (ModelArg::PgrdOnline, Some(net)) = (m, &net) {
                 let bb = task_backbone(task, &backbone)?;
                 let model = OnlinePgrd::new(bb, net, &DEFAULT_GAINS, kind.mppi().horizon)?;
                 let mut world = task.start.clone();
-                let (mut report, traj) = run_trial(&model, &mut world, task, seed, args.max_steps)?;
+                let (mut report, traj) =
+                    run_trial(&model, &mut world, task, mppi_cfg, seed, args.max_steps)?;
                 report.residual_gains = Some(model.chosen_gains());
                 (report, traj)
             } else {
                 let bb = task_backbone(task, &backbone)?;
                 let model: Box<dyn ForwardModel> = match (m, &net) {
                     (ModelArg::Pgrd, Some(net)) => Box::new(Pgrd::new(bb, net.clone())),
+                    (ModelArg::PgrdMembers, Some(net)) => {
+                        Box::new(Pgrd::with_member_trajectories(bb, net.clone())?)
+                    }
                     _ => Box::new(SpringMass::new(bb)),
                 };
                 let mut world = task.start.clone();
-                run_trial(model.as_ref(), &mut world, task, seed, args.max_steps)?
+                run_trial(
+                    model.as_ref(),
+                    &mut world,
+                    task,
+                    mppi_cfg,
+                    seed,
+                    args.max_steps,
+                )?
             };
             report.trial = t;
             for (name, scorer) in scorers(task, &backbone, net.as_ref())? {
@@ -347,7 +389,7 @@ pub fn run(args: &PlanArgs) -> anyhow::Result<()> {
         &curves,
     )?;
     let task0 = &tasks[0];
-    let mppi = kind.mppi();
+    let mppi = mppi_cfg;
     write_json(
         &args.json,
         &serde_json::json!({
@@ -393,6 +435,7 @@ fn model_name(m: ModelArg) -> &'static str {
         ModelArg::SpringMass => "spring-mass",
         ModelArg::Pgrd => "pgrd",
         ModelArg::PgrdOnline => "pgrd-online",
+        ModelArg::PgrdMembers => "pgrd-members",
         ModelArg::World => "world",
     }
 }
@@ -402,10 +445,10 @@ fn run_trial(
     model: &dyn ForwardModel,
     world: &mut dyn System,
     task: &Task,
+    mut cfg: plan::MppiConfig,
     seed: u64,
     max_steps: Option<usize>,
 ) -> anyhow::Result<(TrialReport, Trajectory)> {
-    let mut cfg = task.kind.mppi();
     cfg.seed = seed;
     let mut mppi = Mppi::new(cfg, 1)?;
     let objective = task.objective()?;
@@ -665,6 +708,7 @@ mod tests {
             full_length: false,
             compare: Vec::new(),
             record: Some(record),
+            member_risk: 0.0,
         }
     }
 
@@ -737,6 +781,39 @@ mod tests {
         assert!(err.contains("30 particles") && err.contains("20"), "{err}");
         assert_eq!(dataset::Dataset::open(&dir).unwrap().meta.episodes.len(), 3);
         std::fs::remove_dir_all(&dir).ok();
+    }
+
+    #[test]
+    fn member_trajectories_need_an_ensemble_and_a_valid_risk() {
+        let run = std::env::temp_dir().join(format!("pgrd-plan-members-{}", std::process::id()));
+        std::fs::create_dir_all(&run).unwrap();
+        residual::ResidualNet::new(&residual::ModelConfig::tiny(), 1)
+            .unwrap()
+            .save(&run.join("residual.safetensors"))
+            .unwrap();
+        let mut args = plan_args("rope-lift", run.join("unused"));
+        args.record = None;
+        args.run = run.clone();
+        args.model = vec![ModelArg::PgrdMembers];
+        let err = run_plan_error(&args);
+        assert!(err.contains("needs an ensemble"), "{err}");
+        // Past that check with two networks, a negative risk is refused before any work.
+        let cfg = residual::ModelConfig::tiny();
+        residual::ResidualNet::ensemble(vec![
+            residual::ResidualNet::new(&cfg, 1).unwrap(),
+            residual::ResidualNet::new(&cfg, 2).unwrap(),
+        ])
+        .unwrap()
+        .save(&run.join("residual.safetensors"))
+        .unwrap();
+        args.member_risk = -1.0;
+        let err = run_plan_error(&args);
+        assert!(err.contains("member_risk"), "{err}");
+        std::fs::remove_dir_all(&run).unwrap();
+    }
+
+    fn run_plan_error(args: &PlanArgs) -> String {
+        format!("{:#}", run(args).unwrap_err())
     }
 
     #[test]

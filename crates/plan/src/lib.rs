@@ -7,7 +7,10 @@
 //! PGRD whose residual gain is chosen in closed loop from the observed steps, [`OnlinePgrd`])
 //! predicts what candidate gripper paths do to the object; [`Mppi`] samples candidates around
 //! its mean path, scores them with an [`Objective`] (Chamfer distance to a target point cloud
-//! plus workspace and obstacle penalties) and moves the mean towards the cheap ones.
+//! plus workspace and obstacle penalties) and moves the mean towards the cheap ones. A model of
+//! several members ([`Pgrd::with_member_trajectories`]: each network of an ensemble on its own
+//! trajectory) has every candidate scored under each member, by their mean cost plus
+//! [`MppiConfig::member_risk`] times their spread.
 //! [`run_closed_loop`] executes the first step of each plan on a [`System`] — the reference
 //! world's [`world::Plant`] stands in for the real one — observes, and replans. [`Task`] builds
 //! the paper's rope tasks (lift, lower, rotate, curve, cable rerouting through a [`Slot`]).
@@ -41,7 +44,7 @@ mod task;
 pub use closed_loop::{LoopSettings, ReplanStats, System, Trajectory, run_closed_loop};
 pub use cost::{CostMode, Objective, Workspace};
 pub use error::{PlanError, Result};
-pub use model::{ForwardModel, ModelState, Pgrd, SpringMass};
+pub use model::{ForwardModel, MemberPredictions, ModelState, Pgrd, SpringMass};
 pub use mppi::{Mppi, MppiConfig, PlanStep};
 pub use online::{DEFAULT_GAINS, OnlinePgrd};
 pub use oracle::{OracleSystem, WorldOracle};

@@ -100,6 +100,10 @@ impl ModelState {
     }
 }
 
+/// One candidate's predicted positions by each member of a model, `[member][step][particle]`,
+/// m ([`ForwardModel::rollout_members_batch`]).
+pub type MemberPredictions = Vec<Vec<Vec<Vec3>>>;
+
 /// A model that predicts how particles move under gripper commands.
 ///
 /// `rollout` returns the positions of all particles after each step (`actions.num_frames() − 1`
@@ -127,6 +131,24 @@ pub trait ForwardModel: Sync {
         actions: &[Actions],
     ) -> Vec<Result<Vec<Vec<Vec3>>>> {
         actions.par_iter().map(|a| self.rollout(state, a)).collect()
+    }
+    /// Every member's prediction for every candidate of `actions`, one result per candidate
+    /// in input order: `[member][step][particle]`, each member as [`ForwardModel::rollout`]
+    /// would predict alone. Models made of several members that may disagree (an ensemble of
+    /// residual networks, [`Pgrd::with_member_trajectories`]) return one trajectory per
+    /// member, and [`crate::Mppi`] scores a candidate by its cost under each of them (PETS's
+    /// "trajectory sampling"); a failure of any member fails the candidate alone.
+    ///
+    /// The default is one member, the model's own [`ForwardModel::rollout_batch`].
+    fn rollout_members_batch(
+        &self,
+        state: &ModelState,
+        actions: &[Actions],
+    ) -> Vec<Result<MemberPredictions>> {
+        self.rollout_batch(state, actions)
+            .into_iter()
+            .map(|r| r.map(|x| vec![x]))
+            .collect()
     }
     /// A short name for reports ("spring-mass", "pgrd").
     fn name(&self) -> &str;
@@ -174,17 +196,54 @@ impl ForwardModel for SpringMass {
 }
 
 /// PGRD: the backbone with the residual network's velocity corrections after every step.
+///
+/// An ensemble of networks acts as one model (its members' residuals combined by its rule,
+/// [`residual::EnsembleRule`]) unless built with [`Pgrd::with_member_trajectories`]: then
+/// [`ForwardModel::rollout_members_batch`] runs every member on its own trajectory, so the
+/// planner sees where they disagree about a candidate.
 #[derive(Debug)]
 pub struct Pgrd {
     backbone: Backbone,
     net: Arc<residual::ResidualNet>,
+    /// The ensemble's members, each a network of its own; empty unless the members are
+    /// rolled out apart.
+    members: Vec<residual::ResidualNet>,
 }
 
 impl Pgrd {
     /// The hybrid model of `backbone` and `net` (trained on the same kind of particles); one
     /// network may be shared by many models.
     pub fn new(backbone: Backbone, net: Arc<residual::ResidualNet>) -> Self {
-        Pgrd { backbone, net }
+        Pgrd {
+            backbone,
+            net,
+            members: Vec::new(),
+        }
+    }
+
+    /// The hybrid model of `backbone` and the ensemble `net` whose
+    /// [`ForwardModel::rollout_members_batch`] predicts with each member alone, on its own
+    /// trajectory (the backbone's parameters shared); `rollout` and `rollout_batch` still
+    /// predict with the ensemble as one model. A single network is one member. Each member's
+    /// parameters are copied.
+    pub fn with_member_trajectories(
+        backbone: Backbone,
+        net: Arc<residual::ResidualNet>,
+    ) -> Result<Self> {
+        let members = net
+            .split_ensemble()
+            .map_err(|e| PlanError::Model(e.to_string()))?;
+        Ok(Pgrd {
+            backbone,
+            net,
+            members,
+        })
+    }
+
+    /// Members the planner scores each candidate with (1 unless built with
+    /// [`Pgrd::with_member_trajectories`] from an ensemble).
+    pub fn members(&self) -> usize {
+        self.members.len().max(1)
     }
 
     /// The backbone.
@@ -212,6 +271,39 @@ impl ForwardModel for Pgrd {
         actions: &[Actions],
     ) -> Vec<Result<Vec<Vec<Vec3>>>> {
         hybrid_batch(&self.backbone, &self.net, state, actions)
+    }
+
+    /// Each member through [`residual::predict_batch`] on all candidates, one member after
+    /// the other; the ensemble as one model when the members are not rolled out apart.
+    fn rollout_members_batch(
+        &self,
+        state: &ModelState,
+        actions: &[Actions],
+    ) -> Vec<Result<MemberPredictions>> {
+        if self.members.is_empty() {
+            return self
+                .rollout_batch(state, actions)
+                .into_iter()
+                .map(|r| r.map(|x| vec![x]))
+                .collect();
+        }
+        let mut out: Vec<Result<MemberPredictions>> = (0..actions.len())
+            .map(|_| Ok(Vec::with_capacity(self.members.len())))
+            .collect();
+        for net in &self.members {
+            for (slot, r) in out
+                .iter_mut()
+                .zip(hybrid_batch(&self.backbone, net, state, actions))
+            {
+                match (slot.as_mut(), r) {
+                    (Ok(each), Ok(x)) => each.push(x),
+                    (Ok(_), Err(e)) => *slot = Err(e),
+                    // Already failed under an earlier member.
+                    (Err(_), _) => {}
+                }
+            }
+        }
+        out
     }
 
     fn name(&self) -> &str {

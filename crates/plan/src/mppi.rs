@@ -42,6 +42,12 @@ pub struct MppiConfig {
     /// a workspace face the gripper works at (the table): noise towards the face is punished,
     /// noise away from it is not.
     pub clamp_to_workspace: bool,
+    /// Weight `κ` of the disagreement between a model's members in a candidate's cost: a
+    /// candidate costs `mean_k c_k + κ · sd_k c_k` over the costs `c_k` of its members'
+    /// predictions ([`ForwardModel::rollout_members_batch`]; default 0, the members' mean
+    /// cost as in PETS). Models of one member cost `c` whatever `κ`.
+    #[serde(default)]
+    pub member_risk: f64,
     /// Seed of the noise.
     pub seed: u64,
 }
@@ -64,6 +70,7 @@ impl MppiConfig {
             noise_segments: 3,
             temperature: 0.01,
             clamp_to_workspace: true,
+            member_risk: 0.0,
             seed: 0,
         }
     }
@@ -114,6 +121,9 @@ impl MppiConfig {
         }
         if !(self.temperature.is_finite() && self.temperature > 0.0) {
             return bad("temperature", self.temperature, "must be finite and > 0");
+        }
+        if !(self.member_risk.is_finite() && self.member_risk >= 0.0) {
+            return bad("member_risk", self.member_risk, "must be finite and >= 0");
         }
         Ok(())
     }
@@ -264,7 +274,7 @@ impl Mppi {
                     Ok(path)
                 })
                 .collect();
-            let mut predicted = model.rollout_batch(state, &actions);
+            let mut predicted = model.rollout_members_batch(state, &actions);
             if predicted.len() != actions.len() {
                 let got = predicted.len();
                 predicted = (0..actions.len())
@@ -283,24 +293,29 @@ impl Mppi {
                 .map(|path| {
                     let path = path?;
                     // One result per action sequence (lengths checked above).
-                    let x = predicted.next().unwrap_or_else(|| {
+                    let members = predicted.next().unwrap_or_else(|| {
                         Err(PlanError::Model("no result for a candidate".into()))
                     })?;
-                    Ok((x, path))
+                    Ok((members, path))
                 })
                 .collect();
+            let risk = self.cfg.member_risk;
             let costs: Vec<Result<f64>> = outcomes
                 .into_par_iter()
                 .map(|r| {
-                    let (predicted, path) = r?;
-                    if predicted.len() != h {
-                        return Err(PlanError::Mismatch {
-                            what: "predicted steps",
-                            expected: h,
-                            got: predicted.len(),
-                        });
+                    let (members, path) = r?;
+                    let mut each = Vec::with_capacity(members.len());
+                    for predicted in &members {
+                        if predicted.len() != h {
+                            return Err(PlanError::Mismatch {
+                                what: "predicted steps",
+                                expected: h,
+                                got: predicted.len(),
+                            });
+                        }
+                        each.push(objective.cost(predicted, &path)?);
                     }
-                    let c = objective.cost(&predicted, &path)?;
+                    let c = member_cost(&each, risk)?;
                     if c.is_finite() {
                         Ok(c)
                     } else {
@@ -390,6 +405,24 @@ impl Mppi {
     }
 }
 
+/// A candidate's cost from its members' costs: `mean + risk · sd` (population standard
+/// deviation); one member's cost is returned exactly.
+fn member_cost(each: &[f64], risk: f64) -> Result<f64> {
+    match each {
+        [] => Err(PlanError::Model("no member predicted the candidate".into())),
+        [c] => Ok(*c),
+        _ => {
+            let n = each.len() as f64;
+            let mean = each.iter().sum::<f64>() / n;
+            if risk == 0.0 {
+                return Ok(mean);
+            }
+            let var = each.iter().map(|c| (c - mean).powi(2)).sum::<f64>() / n;
+            Ok(mean + risk * var.sqrt())
+        }
+    }
+}
+
 /// SplitMix64-style combination of seed words into one seed.
 fn mix(words: &[u64]) -> u64 {
     let mut z = 0x243F_6A88_85A3_08D3u64;
@@ -401,4 +434,21 @@ fn mix(words: &[u64]) -> u64 {
         z ^= z >> 31;
     }
     z
+}
+
+#[cfg(test)]
+mod tests {
+    use super::member_cost;
+
+    #[test]
+    fn member_cost_is_the_mean_plus_risk_times_the_spread() {
+        // Costs 1, 2, 3, 6: mean 3, population standard deviation sqrt(3.5).
+        let each = [1.0, 2.0, 3.0, 6.0];
+        assert_eq!(member_cost(&each, 0.0).unwrap(), 3.0);
+        let c = member_cost(&each, 2.0).unwrap();
+        assert!((c - (3.0 + 2.0 * 3.5f64.sqrt())).abs() < 1e-12, "{c}");
+        // One member: its cost, whatever the risk.
+        assert_eq!(member_cost(&[0.37], 5.0).unwrap(), 0.37);
+        assert!(member_cost(&[], 0.0).is_err());
+    }
 }

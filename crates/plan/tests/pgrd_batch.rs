@@ -6,10 +6,11 @@ use std::sync::Arc;
 
 use glam::Vec3;
 use plan::{ForwardModel, ModelState, Mppi, MppiConfig, Objective, Pgrd, Workspace};
+use residual::ResidualNet;
 use springs::{Actions, Backbone, SimConfig, SpringParams};
 
 /// A 40-particle chain 6 mm apart on the table, its first three particles held by gripper 0.
-fn model() -> (Pgrd, ModelState) {
+fn chain() -> (Backbone, ModelState) {
     let x: Vec<Vec3> = (0..40)
         .map(|i| Vec3::new(0.006 * i as f32, 0.01 * (i as f32 * 0.3).sin(), 0.01))
         .collect();
@@ -19,8 +20,17 @@ fn model() -> (Pgrd, ModelState) {
         ..SpringParams::reference_rope()
     };
     let backbone = Backbone::new(&x, &held, params, SimConfig::default()).unwrap();
-    let net = residual::ResidualNet::new(&residual::ModelConfig::tiny(), 1).unwrap();
-    (Pgrd::new(backbone, Arc::new(net)), ModelState::at_rest(x))
+    (backbone, ModelState::at_rest(x))
+}
+
+/// The chain with a tiny network of seed `seed`.
+fn net(seed: u64) -> ResidualNet {
+    ResidualNet::new(&residual::ModelConfig::tiny(), seed).unwrap()
+}
+
+fn model() -> (Pgrd, ModelState) {
+    let (backbone, state) = chain();
+    (Pgrd::new(backbone, Arc::new(net(1))), state)
 }
 
 /// The gripper moving from `from` by `step` per frame, `steps` steps.
@@ -98,4 +108,51 @@ fn pgrd_plans_the_same_for_any_thread_count() {
     let one = plan(1);
     assert_eq!(one.failed, 0);
     assert_eq!(one, plan(2));
+}
+
+/// With member trajectories, an ensemble's members each predict every candidate exactly as
+/// that network alone would (a failing candidate fails under every member); without, the
+/// ensemble is one member, its own batched prediction.
+#[test]
+fn member_trajectories_are_each_member_alone() {
+    let (backbone, state) = chain();
+    let ens = Arc::new(ResidualNet::ensemble(vec![net(1), net(2)]).unwrap());
+    let apart = Pgrd::with_member_trajectories(backbone, ens.clone()).unwrap();
+    assert_eq!(apart.members(), 2);
+    let g = state.x[0];
+    let candidates = vec![
+        path(g, Vec3::new(0.0, 0.0, 0.01), 6),
+        Actions::without_grippers(7),
+        path(g, Vec3::new(0.01, 0.005, 0.0), 6),
+    ];
+    let members = apart.rollout_members_batch(&state, &candidates);
+    assert_eq!(members.len(), 3);
+    assert!(members[1].is_err());
+    for (k, seed) in [1, 2].into_iter().enumerate() {
+        let (backbone, _) = chain();
+        let alone = Pgrd::new(backbone, Arc::new(net(seed))).rollout_batch(&state, &candidates);
+        for c in [0, 2] {
+            let m = members[c].as_ref().unwrap();
+            assert_eq!(m.len(), 2);
+            assert_eq!(
+                &m[k],
+                alone[c].as_ref().unwrap(),
+                "member {k}, candidate {c}"
+            );
+        }
+    }
+    // The members differ, so the comparison above can fail.
+    let m = members[0].as_ref().unwrap();
+    assert!(m[0][5][20].distance(m[1][5][20]) > 1e-6);
+
+    let (backbone, _) = chain();
+    let together = Pgrd::new(backbone, ens);
+    assert_eq!(together.members(), 1);
+    let one = together.rollout_members_batch(&state, &candidates);
+    let batch = together.rollout_batch(&state, &candidates);
+    for c in [0, 2] {
+        let m = one[c].as_ref().unwrap();
+        assert_eq!(m.len(), 1);
+        assert_eq!(&m[0], batch[c].as_ref().unwrap());
+    }
 }

@@ -111,6 +111,26 @@ impl ResidualNet {
         1 + self.members.len()
     }
 
+    /// Every member of this ensemble as a network of its own, in order (one copy for a single
+    /// network): for callers that run each member on its own trajectory, e.g. a planner
+    /// scoring a candidate by every member's prediction (`plan::Pgrd::with_member_trajectories`).
+    /// Parameters are copied; the copies predict exactly what the member predicts alone.
+    ///
+    /// ```
+    /// use residual::{ModelConfig, ResidualNet};
+    /// let cfg = ModelConfig::tiny();
+    /// let pair = ResidualNet::ensemble(vec![ResidualNet::new(&cfg, 1)?, ResidualNet::new(&cfg, 2)?])?;
+    /// let alone = pair.split_ensemble()?;
+    /// assert_eq!(alone.len(), 2);
+    /// assert!(alone.iter().all(|m| m.ensemble_size() == 1 && m.config() == &cfg));
+    /// # Ok::<(), residual::ResidualError>(())
+    /// ```
+    pub fn split_ensemble(&self) -> Result<Vec<ResidualNet>> {
+        self.ensemble_members()
+            .map(|m| m.copy_as(m.config().clone(), false))
+            .collect()
+    }
+
     /// This network and the other members of its ensemble, in order.
     pub(crate) fn ensemble_members(&self) -> impl Iterator<Item = &ResidualNet> {
         std::iter::once(self).chain(&self.members)

@@ -299,7 +299,7 @@ impl ResidualNet {
 
     /// A network of configuration `cfg` (this one's but for the bound) holding this one's
     /// parameters, with the residual-valued output layers zeroed when `silence_output`.
-    fn copy_as(&self, cfg: ModelConfig, silence_output: bool) -> Result<ResidualNet> {
+    pub(crate) fn copy_as(&self, cfg: ModelConfig, silence_output: bool) -> Result<ResidualNet> {
         let copy = ResidualNet::new(&cfg, 0)?;
         let own: std::collections::HashMap<String, Var> = self.named_vars().into_iter().collect();
         for (name, var) in copy.named_vars() {

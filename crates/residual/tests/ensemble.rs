@@ -208,3 +208,29 @@ fn an_ensemble_cannot_be_trained() {
     };
     assert!(err.to_string().contains("ensemble"), "{err}");
 }
+
+/// Split apart, an ensemble's members predict exactly what each network predicts alone, over
+/// several steps (their parameters copied, nothing of the ensemble's rule or windows kept).
+#[test]
+fn split_members_are_the_networks_they_were_built_from() {
+    let (_, _, scene, history, bb) = common::scene("rope", 1);
+    let cfg = ModelConfig::tiny();
+    let alone: Vec<ResidualNet> = (4..7).map(|s| ResidualNet::new(&cfg, s).unwrap()).collect();
+    let ens = ResidualNet::ensemble((4..7).map(|s| ResidualNet::new(&cfg, s).unwrap()).collect())
+        .unwrap()
+        .with_ensemble_rule(EnsembleRule::Agreement);
+    let split = ens.split_ensemble().unwrap();
+    assert_eq!(split.len(), 3);
+    let predict = |net: &ResidualNet| {
+        hybrid_rollout(net, &bb, &scene, &history, opts(4))
+            .unwrap()
+            .positions
+    };
+    let first = predict(&alone[0]);
+    for (member, net) in split.iter().zip(&alone) {
+        assert_eq!(member.ensemble_size(), 1);
+        assert_eq!(predict(member), predict(net));
+    }
+    // The members differ, so the comparison above can fail.
+    assert_ne!(predict(&split[1]), first);
+}
