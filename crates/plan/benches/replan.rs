@@ -2,8 +2,9 @@
 //! 6 iterations: 1350 model steps) on the rerouting task's rope (150 observed points), with the
 //! spring-mass backbone and with PGRD: the network `PGRD_RESIDUAL` names (a
 //! `residual.safetensors`), or an untrained one of the default architecture (same cost). MPPI
-//! hands each iteration's candidates to `ForwardModel::rollout_batch`, which PGRD evaluates
-//! through `residual::predict_batch`.
+//! hands each iteration's candidates to `ForwardModel::rollout_members_batch`, which PGRD
+//! evaluates through `residual::predict_batch`; when `PGRD_RESIDUAL` is an ensemble, PGRD with
+//! each member on its own trajectory (`pgrd-members`) is measured too.
 //! Run with `RAYON_NUM_THREADS=2` to match the 2-core budget of `docs/plan.md`. Besides the
 //! wall time, it prints the process CPU time per replanning step (all threads, from
 //! `/proc/self/stat` on Linux), which other jobs on a shared machine do not inflate, as mean
@@ -46,10 +47,18 @@ fn replan(c: &mut Criterion) {
         Ok(path) => residual::ResidualNet::load(std::path::Path::new(&path)).expect("residual"),
         Err(_) => residual::ResidualNet::new(&residual::ModelConfig::default(), 0).expect("net"),
     };
+    let net = Arc::new(net);
     models.push(Box::new(Pgrd::new(
         task.backbone(params).expect("backbone"),
-        Arc::new(net),
+        net.clone(),
     )));
+    // An ensemble is also planned with each member on its own trajectory.
+    if net.ensemble_size() > 1 {
+        models.push(Box::new(
+            Pgrd::with_member_trajectories(task.backbone(params).expect("backbone"), net)
+                .expect("members"),
+        ));
+    }
     for model in &models {
         cpu_time_per_replan(model.as_ref(), &state, &grippers, &objective);
     }

@@ -307,7 +307,11 @@ impl ForwardModel for Pgrd {
     }
 
     fn name(&self) -> &str {
-        "pgrd"
+        if self.members.is_empty() {
+            "pgrd"
+        } else {
+            "pgrd-members"
+        }
     }
 }
 

@@ -119,6 +119,7 @@ fn member_trajectories_are_each_member_alone() {
     let ens = Arc::new(ResidualNet::ensemble(vec![net(1), net(2)]).unwrap());
     let apart = Pgrd::with_member_trajectories(backbone, ens.clone()).unwrap();
     assert_eq!(apart.members(), 2);
+    assert_eq!(apart.name(), "pgrd-members");
     let g = state.x[0];
     let candidates = vec![
         path(g, Vec3::new(0.0, 0.0, 0.01), 6),
@@ -148,6 +149,7 @@ fn member_trajectories_are_each_member_alone() {
     let (backbone, _) = chain();
     let together = Pgrd::new(backbone, ens);
     assert_eq!(together.members(), 1);
+    assert_eq!(together.name(), "pgrd");
     let one = together.rollout_members_batch(&state, &candidates);
     let batch = together.rollout_batch(&state, &candidates);
     for c in [0, 2] {
