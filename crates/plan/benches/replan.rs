@@ -1,7 +1,8 @@
 //! One MPPI replanning step at the paper's cable-rerouting settings (15 samples, horizon 15,
 //! 6 iterations: 1350 model steps) on the rerouting task's rope (150 observed points), with the
 //! spring-mass backbone and with PGRD: the network `PGRD_RESIDUAL` names (a
-//! `residual.safetensors`), or an untrained one of the default architecture (same cost). MPPI
+//! `residual.safetensors`; an absolute path, since cargo runs benches in the crate's
+//! directory), or an untrained one of the default architecture (same cost). MPPI
 //! hands each iteration's candidates to `ForwardModel::rollout_members_batch`, which PGRD
 //! evaluates through `residual::predict_batch`; when `PGRD_RESIDUAL` is an ensemble, PGRD with
 //! each member on its own trajectory (`pgrd-members`) is measured too.
@@ -44,7 +45,8 @@ fn replan(c: &mut Criterion) {
     // A trained network when `PGRD_RESIDUAL` names one; otherwise an untrained network of the
     // default architecture, which costs the same per step.
     let net = match std::env::var("PGRD_RESIDUAL") {
-        Ok(path) => residual::ResidualNet::load(std::path::Path::new(&path)).expect("residual"),
+        Ok(path) => residual::ResidualNet::load(std::path::Path::new(&path))
+            .unwrap_or_else(|e| panic!("PGRD_RESIDUAL={path}: {e}")),
         Err(_) => residual::ResidualNet::new(&residual::ModelConfig::default(), 0).expect("net"),
     };
     let net = Arc::new(net);
