@@ -129,6 +129,11 @@ struct TrialReport {
     /// `pgrd-online` only: the residual gain it planned with after each executed step.
     #[serde(skip_serializing_if = "Option::is_none")]
     residual_gains: Option<Vec<f32>>,
+    /// `pgrd-members` only: per replanning step, the standard deviation over the members of
+    /// the costs of the candidate the planner scored best in its last iteration, cm of
+    /// Chamfer distance (`plan::ReplanStats::best_member_sd`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    member_cost_sd_cm: Option<Vec<f64>>,
 }
 
 /// One model's results.
@@ -260,14 +265,19 @@ pub fn run(args: &PlanArgs) -> anyhow::Result<()> {
                     _ => Box::new(SpringMass::new(bb)),
                 };
                 let mut world = task.start.clone();
-                run_trial(
+                let (mut report, traj) = run_trial(
                     model.as_ref(),
                     &mut world,
                     task,
                     mppi_cfg,
                     seed,
                     args.max_steps,
-                )?
+                )?;
+                if m == ModelArg::PgrdMembers {
+                    let sd = traj.replans.iter().map(|r| r.best_member_sd * 100.0);
+                    report.member_cost_sd_cm = Some(sd.collect());
+                }
+                (report, traj)
             };
             report.trial = t;
             for (name, scorer) in scorers(task, &backbone, net.as_ref())? {
@@ -477,6 +487,7 @@ fn run_trial(
             / walls.len().max(1) as f64,
         path_error_cm: Default::default(),
         residual_gains: None,
+        member_cost_sd_cm: None,
     };
     Ok((report, traj))
 }

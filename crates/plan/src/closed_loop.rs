@@ -54,6 +54,9 @@ pub struct ReplanStats {
     pub wall_s: f64,
     /// The best candidate's cost in the last iteration.
     pub best_cost: f64,
+    /// The standard deviation of that candidate's costs over the model's members (0 for a
+    /// model of one member; [`crate::PlanStep::best_member_sd`]).
+    pub best_member_sd: f64,
     /// Candidate rollouts that failed.
     pub failed: usize,
     /// Candidate rollouts run.
@@ -132,6 +135,7 @@ pub fn run_closed_loop(
         out.replans.push(ReplanStats {
             wall_s: t0.elapsed().as_secs_f64(),
             best_cost: step.best_cost.last().copied().unwrap_or(f64::INFINITY),
+            best_member_sd: step.best_member_sd.last().copied().unwrap_or(f64::NAN),
             failed: step.failed,
             rollouts: step.rollouts,
             observe_wall_s: 0.0,

@@ -138,6 +138,10 @@ pub struct PlanStep {
     pub path: Vec<Vec<Vec3>>,
     /// Lowest candidate cost of each iteration.
     pub best_cost: Vec<f64>,
+    /// Standard deviation of the lowest-cost candidate's costs over the model's members, each
+    /// iteration (0 for a model of one member; NaN where every candidate failed): how much
+    /// the members disagree about the candidate the planner likes best.
+    pub best_member_sd: Vec<f64>,
     /// Candidate rollouts that failed, over all iterations.
     pub failed: usize,
     /// Candidate rollouts run, over all iterations.
@@ -237,6 +241,7 @@ impl Mppi {
         let seg_len = h.div_ceil(self.cfg.noise_segments.min(h));
         let (mut failed, mut rollouts, mut first_error) = (0, 0, None);
         let mut best_cost = Vec::with_capacity(self.cfg.iterations);
+        let mut best_member_sd = Vec::with_capacity(self.cfg.iterations);
         for it in 0..self.cfg.iterations {
             let mut rng = ChaCha8Rng::seed_from_u64(mix(&[self.cfg.seed, self.replans, it as u64]));
             let candidates: Vec<Vec<Vec3>> = (0..k)
@@ -300,7 +305,7 @@ impl Mppi {
                 })
                 .collect();
             let risk = self.cfg.member_risk;
-            let costs: Vec<Result<f64>> = outcomes
+            let costs: Vec<Result<(f64, f64)>> = outcomes
                 .into_par_iter()
                 .map(|r| {
                     let (members, path) = r?;
@@ -315,9 +320,9 @@ impl Mppi {
                         }
                         each.push(objective.cost(predicted, &path)?);
                     }
-                    let c = member_cost(&each, risk)?;
+                    let (c, sd) = member_cost(&each, risk)?;
                     if c.is_finite() {
-                        Ok(c)
+                        Ok((c, sd))
                     } else {
                         Err(PlanError::NonFinite("candidate cost"))
                     }
@@ -325,9 +330,13 @@ impl Mppi {
                 .collect();
             rollouts += k;
             let mut ok: Vec<(usize, f64)> = Vec::with_capacity(k);
+            let mut spread: Vec<f64> = Vec::with_capacity(k);
             for (c, r) in costs.into_iter().enumerate() {
                 match r {
-                    Ok(v) => ok.push((c, v)),
+                    Ok((v, sd)) => {
+                        ok.push((c, v));
+                        spread.push(sd);
+                    }
                     Err(e) => {
                         failed += 1;
                         first_error.get_or_insert_with(|| e.to_string());
@@ -336,10 +345,14 @@ impl Mppi {
             }
             if ok.is_empty() {
                 best_cost.push(f64::INFINITY);
+                best_member_sd.push(f64::NAN);
                 continue;
             }
             let lo = ok.iter().map(|c| c.1).fold(f64::INFINITY, f64::min);
             best_cost.push(lo);
+            // The first candidate at the lowest cost (ties keep input order).
+            let best = ok.iter().position(|c| c.1 == lo).unwrap_or(0);
+            best_member_sd.push(spread[best]);
             let weights: Vec<f64> = ok
                 .iter()
                 .map(|c| (-(c.1 - lo) / self.cfg.temperature).exp())
@@ -369,6 +382,7 @@ impl Mppi {
             next,
             path,
             best_cost,
+            best_member_sd,
             failed,
             rollouts,
         })
@@ -405,20 +419,19 @@ impl Mppi {
     }
 }
 
-/// A candidate's cost from its members' costs: `mean + risk · sd` (population standard
-/// deviation); one member's cost is returned exactly.
-fn member_cost(each: &[f64], risk: f64) -> Result<f64> {
+/// A candidate's cost from its members' costs, `mean + risk · sd`, and `sd` (population
+/// standard deviation); one member's cost is returned exactly, with `sd` 0.
+fn member_cost(each: &[f64], risk: f64) -> Result<(f64, f64)> {
     match each {
         [] => Err(PlanError::Model("no member predicted the candidate".into())),
-        [c] => Ok(*c),
+        [c] => Ok((*c, 0.0)),
         _ => {
             let n = each.len() as f64;
             let mean = each.iter().sum::<f64>() / n;
-            if risk == 0.0 {
-                return Ok(mean);
-            }
-            let var = each.iter().map(|c| (c - mean).powi(2)).sum::<f64>() / n;
-            Ok(mean + risk * var.sqrt())
+            let sd = (each.iter().map(|c| (c - mean).powi(2)).sum::<f64>() / n).sqrt();
+            // Without risk the mean itself, not mean + 0 · sd (bit for bit, and NaN-free).
+            let cost = if risk == 0.0 { mean } else { mean + risk * sd };
+            Ok((cost, sd))
         }
     }
 }
@@ -444,11 +457,13 @@ mod tests {
     fn member_cost_is_the_mean_plus_risk_times_the_spread() {
         // Costs 1, 2, 3, 6: mean 3, population standard deviation sqrt(3.5).
         let each = [1.0, 2.0, 3.0, 6.0];
-        assert_eq!(member_cost(&each, 0.0).unwrap(), 3.0);
-        let c = member_cost(&each, 2.0).unwrap();
+        let (c, sd) = member_cost(&each, 0.0).unwrap();
+        assert_eq!(c, 3.0);
+        assert!((sd - 3.5f64.sqrt()).abs() < 1e-12, "{sd}");
+        let (c, _) = member_cost(&each, 2.0).unwrap();
         assert!((c - (3.0 + 2.0 * 3.5f64.sqrt())).abs() < 1e-12, "{c}");
-        // One member: its cost, whatever the risk.
-        assert_eq!(member_cost(&[0.37], 5.0).unwrap(), 0.37);
+        // One member: its cost, whatever the risk, and no spread.
+        assert_eq!(member_cost(&[0.37], 5.0).unwrap(), (0.37, 0.0));
         assert!(member_cost(&[], 0.0).is_err());
     }
 }

@@ -185,3 +185,37 @@ fn a_negative_or_non_finite_risk_is_refused() {
         assert!(Mppi::new(cfg, 1).is_err(), "risk {risk}");
     }
 }
+
+/// Each plan reports how much the members disagree about its best candidate: not at all for
+/// identical members, by half their cost difference for two that differ everywhere.
+#[test]
+fn the_plan_reports_the_members_spread_about_its_best_candidate() {
+    let ws = Workspace {
+        min: Vec3::splat(-1.0),
+        max: Vec3::splat(1.0),
+    };
+    let objective = Objective::new(&[Vec3::new(0.2, 0.0, 0.0)], ws).unwrap();
+    let state = ModelState::at_rest(vec![Vec3::ZERO]);
+    let plan = |model: &Glued| {
+        let mut mppi = Mppi::new(MppiConfig::simple(), 1).unwrap();
+        mppi.plan(model, &state, &[Vec3::ZERO], &objective).unwrap()
+    };
+    let same = plan(&Glued::new(vec![zero, zero]));
+    assert_eq!(same.best_member_sd, vec![0.0; 3]);
+    // Member 1 sees the particle 10 cm higher wherever the gripper goes; at a target on the
+    // table the costs (two-sided Chamfer of one point, twice the distance) then differ by
+    // between 0 and 0.2, so the spread lies in (0, 0.1].
+    fn up(_: Vec3) -> Vec3 {
+        Vec3::new(0.0, 0.0, 0.1)
+    }
+    let apart = plan(&Glued::new(vec![zero, up]));
+    assert_eq!(apart.best_member_sd.len(), 3);
+    assert!(
+        apart
+            .best_member_sd
+            .iter()
+            .all(|&s| s > 0.0 && s <= 0.1 + 1e-9),
+        "{:?}",
+        apart.best_member_sd
+    );
+}
