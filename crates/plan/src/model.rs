@@ -145,10 +145,7 @@ pub trait ForwardModel: Sync {
         state: &ModelState,
         actions: &[Actions],
     ) -> Vec<Result<MemberPredictions>> {
-        self.rollout_batch(state, actions)
-            .into_iter()
-            .map(|r| r.map(|x| vec![x]))
-            .collect()
+        as_one_member(self.rollout_batch(state, actions))
     }
     /// A short name for reports ("spring-mass", "pgrd").
     fn name(&self) -> &str;
@@ -281,11 +278,7 @@ impl ForwardModel for Pgrd {
         actions: &[Actions],
     ) -> Vec<Result<MemberPredictions>> {
         if self.members.is_empty() {
-            return self
-                .rollout_batch(state, actions)
-                .into_iter()
-                .map(|r| r.map(|x| vec![x]))
-                .collect();
+            return as_one_member(self.rollout_batch(state, actions));
         }
         let mut out: Vec<Result<MemberPredictions>> = (0..actions.len())
             .map(|_| Ok(Vec::with_capacity(self.members.len())))
@@ -313,6 +306,11 @@ impl ForwardModel for Pgrd {
             "pgrd-members"
         }
     }
+}
+
+/// Each candidate's prediction as the only member's.
+fn as_one_member(batch: Vec<Result<Vec<Vec<Vec3>>>>) -> Vec<Result<MemberPredictions>> {
+    batch.into_iter().map(|r| r.map(|x| vec![x])).collect()
 }
 
 /// The backbone alone from `state` (positions after each step).

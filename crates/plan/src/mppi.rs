@@ -329,14 +329,11 @@ impl Mppi {
                 })
                 .collect();
             rollouts += k;
-            let mut ok: Vec<(usize, f64)> = Vec::with_capacity(k);
-            let mut spread: Vec<f64> = Vec::with_capacity(k);
+            // (candidate, cost, members' spread) of the candidates that were scored.
+            let mut ok: Vec<(usize, f64, f64)> = Vec::with_capacity(k);
             for (c, r) in costs.into_iter().enumerate() {
                 match r {
-                    Ok((v, sd)) => {
-                        ok.push((c, v));
-                        spread.push(sd);
-                    }
+                    Ok((v, sd)) => ok.push((c, v, sd)),
                     Err(e) => {
                         failed += 1;
                         first_error.get_or_insert_with(|| e.to_string());
@@ -351,8 +348,8 @@ impl Mppi {
             let lo = ok.iter().map(|c| c.1).fold(f64::INFINITY, f64::min);
             best_cost.push(lo);
             // The first candidate at the lowest cost (ties keep input order).
-            let best = ok.iter().position(|c| c.1 == lo).unwrap_or(0);
-            best_member_sd.push(spread[best]);
+            let best = ok.iter().find(|c| c.1 == lo).map_or(f64::NAN, |c| c.2);
+            best_member_sd.push(best);
             let weights: Vec<f64> = ok
                 .iter()
                 .map(|c| (-(c.1 - lo) / self.cfg.temperature).exp())
@@ -360,7 +357,7 @@ impl Mppi {
             let total: f64 = weights.iter().sum();
             for (j, m) in self.mean.iter_mut().enumerate() {
                 let mut acc = glam::DVec3::ZERO;
-                for ((c, _), w) in ok.iter().zip(&weights) {
+                for ((c, _, _), w) in ok.iter().zip(&weights) {
                     acc += candidates[*c][j].as_dvec3() * *w;
                 }
                 *m = (acc / total).as_vec3();
