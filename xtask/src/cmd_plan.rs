@@ -105,6 +105,10 @@ pub struct PlanArgs {
     /// costs) in a candidate's cost; 0 scores by their mean cost alone.
     #[arg(long, default_value_t = 0.0)]
     pub member_risk: f64,
+    /// Override the task's MPPI temperature (the weights' `exp(−(c − c_min) / λ)`, m of
+    /// Chamfer distance; default 0.01).
+    #[arg(long)]
+    pub temperature: Option<f64>,
 }
 
 /// One trial in the report.
@@ -196,6 +200,9 @@ pub fn run(args: &PlanArgs) -> anyhow::Result<()> {
     }
     let mut mppi_cfg = kind.mppi();
     mppi_cfg.member_risk = args.member_risk;
+    if let Some(t) = args.temperature {
+        mppi_cfg.temperature = t;
+    }
     mppi_cfg.validate()?;
     let backbone = read_backbone(&args.run)?;
     // The field is per tracked particle of the training data; a task's rope has its own.
@@ -720,6 +727,7 @@ mod tests {
             compare: Vec::new(),
             record: Some(record),
             member_risk: 0.0,
+            temperature: None,
         }
     }
 
@@ -795,7 +803,7 @@ mod tests {
     }
 
     #[test]
-    fn member_trajectories_need_an_ensemble_and_a_valid_risk() {
+    fn member_trajectories_need_an_ensemble_and_a_valid_risk_and_temperature() {
         let run = std::env::temp_dir().join(format!("pgrd-plan-members-{}", std::process::id()));
         std::fs::create_dir_all(&run).unwrap();
         residual::ResidualNet::new(&residual::ModelConfig::tiny(), 1)
@@ -820,6 +828,10 @@ mod tests {
         args.member_risk = -1.0;
         let err = run_plan_error(&args);
         assert!(err.contains("member_risk"), "{err}");
+        args.member_risk = 0.0;
+        args.temperature = Some(0.0);
+        let err = run_plan_error(&args);
+        assert!(err.contains("temperature"), "{err}");
         std::fs::remove_dir_all(&run).unwrap();
     }
 
