@@ -102,7 +102,8 @@ pub struct PlanArgs {
     #[arg(long)]
     pub record: Option<PathBuf>,
     /// `pgrd-members`: weight of the members' disagreement (standard deviation of their
-    /// costs) in a candidate's cost; 0 scores by their mean cost alone.
+    /// costs) in a candidate's cost; 0 scores by their mean cost alone. Any other value
+    /// without `--model pgrd-members` is an error (no other model has members).
     #[arg(long, default_value_t = 0.0)]
     pub member_risk: f64,
     /// Override the task's MPPI temperature (the weights' `exp(−(c − c_min) / λ)`, m of
@@ -198,6 +199,18 @@ pub fn run(args: &PlanArgs) -> anyhow::Result<()> {
             args.run.display()
         );
     }
+    // Only member trajectories have a spread to weigh; on any other model the weight would be
+    // silently ignored, and the user would think the plan risk-averse.
+    anyhow::ensure!(
+        args.member_risk == 0.0 || models.contains(&ModelArg::PgrdMembers),
+        "--member-risk weighs the members' disagreement, which only --model pgrd-members \
+         scores; the models asked for ({}) have one prediction per candidate",
+        models
+            .iter()
+            .map(|m| model_name(*m))
+            .collect::<Vec<_>>()
+            .join(", ")
+    );
     let mut mppi_cfg = kind.mppi();
     mppi_cfg.member_risk = args.member_risk;
     if let Some(t) = args.temperature {
@@ -828,6 +841,12 @@ mod tests {
         args.member_risk = -1.0;
         let err = run_plan_error(&args);
         assert!(err.contains("member_risk"), "{err}");
+        // A risk weight asked of models that have no members is refused, not ignored.
+        args.model = vec![ModelArg::SpringMass, ModelArg::Pgrd];
+        args.member_risk = 1.0;
+        let err = run_plan_error(&args);
+        assert!(err.contains("only --model pgrd-members"), "{err}");
+        args.model = vec![ModelArg::PgrdMembers];
         args.member_risk = 0.0;
         args.temperature = Some(0.0);
         let err = run_plan_error(&args);
