@@ -234,3 +234,30 @@ fn split_members_are_the_networks_they_were_built_from() {
     // The members differ, so the comparison above can fail.
     assert_ne!(predict(&split[1]), first);
 }
+
+/// An ensemble's rollout is the same, bit for bit, on one thread and on three, for both
+/// rules (candle's kernels may use the pool's threads; the members' order is fixed).
+#[test]
+fn an_ensemble_rolls_out_the_same_on_any_thread_count() {
+    let (_, _, scene, history, bb) = common::scene("rope", 0);
+    let cfg = ModelConfig::tiny();
+    for rule in [EnsembleRule::Mean, EnsembleRule::Agreement] {
+        let ens = ResidualNet::ensemble(
+            (0..3)
+                .map(|s| ResidualNet::new(&cfg, 10 + s).unwrap())
+                .collect(),
+        )
+        .unwrap()
+        .with_ensemble_rule(rule);
+        let on = |threads: usize| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap()
+                .install(|| hybrid_rollout(&ens, &bb, &scene, &history, opts(4)).unwrap())
+        };
+        let (one, three) = (on(1), on(3));
+        assert_eq!(one.positions, three.positions, "{rule:?}");
+        assert_eq!(one.velocities, three.velocities, "{rule:?}");
+    }
+}
