@@ -35,6 +35,12 @@ pub struct EnsembleArgs {
     /// particle by |m|² / (|m|² + s²) where the members disagree; `residual::EnsembleRule`).
     #[arg(long, value_enum, default_value = "mean")]
     rule: Rule,
+    /// Average the members' parameters into one network instead of combining their residuals
+    /// (stochastic weight averaging; one network's cost per step). Meaningful only for
+    /// snapshots of one training run (e.g. its `snapshots/step_*/residual.safetensors`), not
+    /// for networks of different seeds. Only with `--rule mean`.
+    #[arg(long)]
+    average_weights: bool,
 }
 
 #[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize)]
@@ -178,6 +184,9 @@ fn resolve(path: &Path, pick: MemberStep) -> anyhow::Result<Member> {
 
 /// Writes the ensemble run and prints one line per member.
 pub fn run(args: &EnsembleArgs) -> anyhow::Result<()> {
+    if args.average_weights && args.rule != Rule::Mean {
+        bail!("--average-weights makes one network; it takes no --rule");
+    }
     let backbone_run = match &args.backbone_run {
         Some(r) => r.clone(),
         None => args
@@ -219,10 +228,14 @@ pub fn run(args: &EnsembleArgs) -> anyhow::Result<()> {
                 .with_context(|| format!("loading {}", m.file.display()))
         })
         .collect::<anyhow::Result<Vec<_>>>()?;
-    let ensemble = residual::ResidualNet::ensemble(nets)?.with_ensemble_rule(match args.rule {
-        Rule::Mean => residual::EnsembleRule::Mean,
-        Rule::Agreement => residual::EnsembleRule::Agreement,
-    });
+    let ensemble = if args.average_weights {
+        residual::ResidualNet::average_weights(&nets)?
+    } else {
+        residual::ResidualNet::ensemble(nets)?.with_ensemble_rule(match args.rule {
+            Rule::Mean => residual::EnsembleRule::Mean,
+            Rule::Agreement => residual::EnsembleRule::Agreement,
+        })
+    };
     std::fs::create_dir_all(&args.run)
         .with_context(|| format!("creating {}", args.run.display()))?;
     dataset::write_atomic(&common::backbone_path(&args.run), &backbone)?;
@@ -233,6 +246,7 @@ pub fn run(args: &EnsembleArgs) -> anyhow::Result<()> {
         "backbone_run": backbone_run,
         "member_step": args.member_step,
         "rule": args.rule,
+        "average_weights": args.average_weights,
         "members": members,
     });
     dataset::write_atomic(
@@ -246,9 +260,13 @@ pub fn run(args: &EnsembleArgs) -> anyhow::Result<()> {
             .map_or("-".into(), |v| format!("{v:.3} cm held out"));
         println!("member {k}: {} (step {step}, {mde})", m.file.display());
     }
+    let what = if args.average_weights {
+        format!("weight average of {} networks", members.len())
+    } else {
+        format!("ensemble of {} networks", ensemble.ensemble_size())
+    };
     println!(
-        "ensemble of {} networks ({} parameters) -> {}",
-        ensemble.ensemble_size(),
+        "{what} ({} parameters) -> {}",
         ensemble.parameter_count(),
         out_net.display()
     );
@@ -321,6 +339,7 @@ mod tests {
             backbone_run: None,
             member_step: MemberStep::Selected,
             rule: Rule::Mean,
+            average_weights: false,
         };
         let err = run(&args(vec![a.clone(), b.clone()]))
             .unwrap_err()
@@ -330,6 +349,56 @@ mod tests {
         std::fs::write(out.join("residual.safetensors"), b"").unwrap();
         let err = run(&args(vec![a.clone()])).unwrap_err().to_string();
         assert!(err.contains("already holds a trained network"), "{err}");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn averaged_weights_make_one_network() {
+        let dir = std::env::temp_dir().join(format!("pgrd-ens-avg-{}", std::process::id()));
+        let (bb, out) = (dir.join("bb"), dir.join("out"));
+        std::fs::create_dir_all(&bb).unwrap();
+        std::fs::write(common::backbone_path(&bb), "{}").unwrap();
+        let cfg = residual::ModelConfig::tiny();
+        let files: Vec<PathBuf> = (1..=2)
+            .map(|seed| {
+                let f = dir.join(format!("n{seed}.safetensors"));
+                residual::ResidualNet::new(&cfg, seed)
+                    .unwrap()
+                    .save(&f)
+                    .unwrap();
+                f
+            })
+            .collect();
+        let mut args = EnsembleArgs {
+            members: files.clone(),
+            run: out.clone(),
+            backbone_run: Some(bb.clone()),
+            member_step: MemberStep::Selected,
+            rule: Rule::Agreement,
+            average_weights: true,
+        };
+        let err = run(&args).unwrap_err().to_string();
+        assert!(err.contains("no --rule"), "{err}");
+        args.rule = Rule::Mean;
+        run(&args).unwrap();
+        let got = residual::ResidualNet::load(&out.join("residual.safetensors")).unwrap();
+        assert_eq!(got.ensemble_size(), 1);
+        let nets: Vec<_> = files
+            .iter()
+            .map(|f| residual::ResidualNet::load(f).unwrap())
+            .collect();
+        let want = residual::ResidualNet::average_weights(&nets).unwrap();
+        for ((_, g), (_, w)) in got.named_vars().iter().zip(want.named_vars().iter()) {
+            let d = (g.as_tensor() - w.as_tensor())
+                .unwrap()
+                .abs()
+                .unwrap()
+                .max_all()
+                .unwrap()
+                .to_scalar::<f32>()
+                .unwrap();
+            assert_eq!(d, 0.0);
+        }
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

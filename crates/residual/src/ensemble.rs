@@ -85,6 +85,62 @@ impl ResidualNet {
         Ok(first)
     }
 
+    /// One network whose every parameter is the mean of the same parameter in `nets` (at least
+    /// one, all single networks of one configuration): stochastic weight averaging (Izmailov
+    /// et al., 2018). Unlike [`ResidualNet::ensemble`] it costs one network per step, but it is
+    /// only meaningful for networks that lie in one basin, e.g. late snapshots of one training
+    /// run; networks trained from different seeds differ by permutations of their units, and
+    /// their average is not a network either of them resembles.
+    ///
+    /// ```
+    /// use residual::{ModelConfig, ResidualNet};
+    /// let cfg = ModelConfig::tiny();
+    /// let a = ResidualNet::new(&cfg, 1)?;
+    /// let b = ResidualNet::new(&cfg, 2)?;
+    /// let avg = ResidualNet::average_weights(&[a, b])?;
+    /// assert_eq!(avg.ensemble_size(), 1);
+    /// assert_eq!(avg.config(), &cfg);
+    /// assert!(ResidualNet::average_weights(&[]).is_err());
+    /// # Ok::<(), residual::ResidualError>(())
+    /// ```
+    pub fn average_weights(nets: &[ResidualNet]) -> Result<ResidualNet> {
+        let Some(first) = nets.first() else {
+            return Err(ResidualError::Config(
+                "weight averaging needs at least one network".into(),
+            ));
+        };
+        for (k, net) in nets.iter().enumerate() {
+            if !net.members.is_empty() {
+                return Err(ResidualError::Config(format!(
+                    "network {k} is an ensemble of {}; average single networks",
+                    net.ensemble_size()
+                )));
+            }
+            if net.config() != first.config() {
+                return Err(ResidualError::Config(format!(
+                    "network {k} has another configuration than network 0"
+                )));
+            }
+        }
+        let avg = first.copy_as(first.config().clone(), false)?;
+        let all: Vec<HashMap<String, candle_core::Var>> = nets
+            .iter()
+            .map(|n| n.named_vars().into_iter().collect())
+            .collect();
+        let scale = 1.0 / nets.len() as f64;
+        for (name, var) in avg.named_vars() {
+            let mut sum = var.as_tensor().zeros_like()?;
+            for (k, vars) in all.iter().enumerate() {
+                let t = vars.get(&name).ok_or_else(|| {
+                    ResidualError::Config(format!("network {k} has no parameter {name}"))
+                })?;
+                sum = (sum + t.as_tensor())?;
+            }
+            var.set(&(sum * scale)?)?;
+        }
+        Ok(avg)
+    }
+
     /// The same ensemble combining its members by `rule` (a single network is unaffected).
     ///
     /// ```

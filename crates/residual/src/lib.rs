@@ -12,7 +12,8 @@
 //! [`hybrid_rollout`] runs backbone and network together; [`Trainer`] trains on 5-step
 //! rollouts drawn from a [`TrainSet`]; [`ResidualNet::ensemble`] makes trained networks act as
 //! one (their mean residual, or with [`EnsembleRule::Agreement`] that mean shrunk where they
-//! disagree); [`TrainSet::oracle_mde_cm`] measures how much a
+//! disagree); [`ResidualNet::average_weights`] averages one run's snapshots' parameters into
+//! one network; [`TrainSet::oracle_mde_cm`] measures how much a
 //! corrector held to a given bound could gain at all. Architecture, sizes, normalisation,
 //! costs and deviations from the paper: `docs/residual.md`.
 //!

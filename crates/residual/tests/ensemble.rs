@@ -261,3 +261,58 @@ fn an_ensemble_rolls_out_the_same_on_any_thread_count() {
         assert_eq!(one.velocities, three.velocities, "{rule:?}");
     }
 }
+
+/// Weight averaging: two copies of one network average to that network bit for bit (a + a and
+/// the halving are exact); two different networks average to the midpoint of every parameter;
+/// ensembles and networks of another configuration are refused.
+#[test]
+fn averaged_weights_are_the_parameters_mean() {
+    let (_, _, scene, history, bb) = common::scene("rope", 1);
+    let cfg = ModelConfig::tiny();
+    let net = ResidualNet::new(&cfg, 3).unwrap();
+    let copy = net.with_residual_gain(1.0).unwrap();
+    let avg = ResidualNet::average_weights(&[net.with_residual_gain(1.0).unwrap(), copy]).unwrap();
+    assert_eq!(avg.ensemble_size(), 1);
+    assert_eq!(avg.parameter_count(), net.parameter_count());
+    let single = hybrid_rollout(&net, &bb, &scene, &history, opts(3)).unwrap();
+    let out = hybrid_rollout(&avg, &bb, &scene, &history, opts(3)).unwrap();
+    assert_eq!(out.positions, single.positions);
+
+    let other = ResidualNet::new(&cfg, 4).unwrap();
+    let mid = ResidualNet::average_weights(&[
+        net.with_residual_gain(1.0).unwrap(),
+        other.with_residual_gain(1.0).unwrap(),
+    ])
+    .unwrap();
+    let flat = |n: &ResidualNet| -> Vec<Vec<f32>> {
+        n.named_vars()
+            .iter()
+            .map(|(_, v)| {
+                v.as_tensor()
+                    .flatten_all()
+                    .unwrap()
+                    .to_vec1::<f32>()
+                    .unwrap()
+            })
+            .collect()
+    };
+    let (a, b, m) = (flat(&net), flat(&other), flat(&mid));
+    let mut differing = 0;
+    for ((a, b), m) in a.iter().zip(&b).zip(&m) {
+        for ((a, b), m) in a.iter().zip(b).zip(m) {
+            assert!((m - 0.5 * (a + b)).abs() <= 1e-6 * (1.0 + a.abs() + b.abs()));
+            differing += usize::from(a != b);
+        }
+    }
+    assert!(differing > 0, "the two networks are the same");
+
+    let err = ResidualNet::average_weights(&[two_tiny_networks()]).unwrap_err();
+    assert!(err.to_string().contains("ensemble"), "{err}");
+    let wider = ModelConfig {
+        residual_scale: 0.3,
+        ..cfg
+    };
+    let err =
+        ResidualNet::average_weights(&[net, ResidualNet::new(&wider, 5).unwrap()]).unwrap_err();
+    assert!(err.to_string().contains("configuration"), "{err}");
+}
