@@ -4,20 +4,8 @@
 
 mod common;
 
+use common::weights;
 use residual::{ModelConfig, ResidualNet, TrainConfig, Trainer};
-
-fn weights(net: &ResidualNet) -> Vec<Vec<f32>> {
-    net.named_vars()
-        .iter()
-        .map(|(_, v)| {
-            v.as_tensor()
-                .flatten_all()
-                .unwrap()
-                .to_vec1::<f32>()
-                .unwrap()
-        })
-        .collect()
-}
 
 fn trainer(decay: f64) -> Trainer {
     let cfg = TrainConfig {

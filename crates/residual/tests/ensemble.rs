@@ -284,19 +284,11 @@ fn averaged_weights_are_the_parameters_mean() {
         other.with_residual_gain(1.0).unwrap(),
     ])
     .unwrap();
-    let flat = |n: &ResidualNet| -> Vec<Vec<f32>> {
-        n.named_vars()
-            .iter()
-            .map(|(_, v)| {
-                v.as_tensor()
-                    .flatten_all()
-                    .unwrap()
-                    .to_vec1::<f32>()
-                    .unwrap()
-            })
-            .collect()
-    };
-    let (a, b, m) = (flat(&net), flat(&other), flat(&mid));
+    let (a, b, m) = (
+        common::weights(&net),
+        common::weights(&other),
+        common::weights(&mid),
+    );
     let mut differing = 0;
     for ((a, b), m) in a.iter().zip(&b).zip(&m) {
         for ((a, b), m) in a.iter().zip(b).zip(m) {

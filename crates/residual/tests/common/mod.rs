@@ -5,7 +5,7 @@ use std::path::PathBuf;
 
 use dataset::Split;
 use dataset::{Dataset, Episode};
-use residual::{History, TrainSet};
+use residual::{History, ResidualNet, TrainSet};
 use scene::{Protocol, Scene, SceneConfig};
 use springs::{Backbone, SpringParams};
 
@@ -48,4 +48,18 @@ pub fn temp_dir(tag: &str) -> PathBuf {
     let d = std::env::temp_dir().join(format!("pgrd-residual-{tag}-{}", std::process::id()));
     std::fs::create_dir_all(&d).unwrap();
     d
+}
+
+/// Every parameter of `net`, flattened, in `named_vars` order.
+pub fn weights(net: &ResidualNet) -> Vec<Vec<f32>> {
+    net.named_vars()
+        .iter()
+        .map(|(_, v)| {
+            v.as_tensor()
+                .flatten_all()
+                .unwrap()
+                .to_vec1::<f32>()
+                .unwrap()
+        })
+        .collect()
 }
