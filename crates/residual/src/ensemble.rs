@@ -67,20 +67,7 @@ impl ResidualNet {
             ));
         };
         let rest: Vec<ResidualNet> = nets.collect();
-        for (k, net) in std::iter::once(&first).chain(&rest).enumerate() {
-            if !net.members.is_empty() {
-                return Err(ResidualError::Config(format!(
-                    "ensemble member {k} is itself an ensemble of {}",
-                    net.ensemble_size()
-                )));
-            }
-            if net.config() != first.config() {
-                return Err(ResidualError::Config(format!(
-                    "ensemble member {k} has another configuration than member 0 \
-                     (members must share encoder, inputs, window and bound)"
-                )));
-            }
-        }
+        single_networks_of_one_config(std::iter::once(&first).chain(&rest), "ensemble member")?;
         first.members = rest;
         Ok(first)
     }
@@ -109,19 +96,7 @@ impl ResidualNet {
                 "weight averaging needs at least one network".into(),
             ));
         };
-        for (k, net) in nets.iter().enumerate() {
-            if !net.members.is_empty() {
-                return Err(ResidualError::Config(format!(
-                    "network {k} is an ensemble of {}; average single networks",
-                    net.ensemble_size()
-                )));
-            }
-            if net.config() != first.config() {
-                return Err(ResidualError::Config(format!(
-                    "network {k} has another configuration than network 0"
-                )));
-            }
-        }
+        single_networks_of_one_config(nets, "network")?;
         let avg = first.copy_as(first.config().clone(), false)?;
         let all: Vec<HashMap<String, candle_core::Var>> = nets
             .iter()
@@ -260,6 +235,31 @@ impl ResidualNet {
         }
         Ok(ResidualNet::ensemble(nets)?.with_ensemble_rule(rule))
     }
+}
+
+/// Refuses networks that are themselves ensembles or whose configuration differs from the
+/// first one's (`what` names them in the error: "ensemble member", "network").
+fn single_networks_of_one_config<'a>(
+    nets: impl IntoIterator<Item = &'a ResidualNet>,
+    what: &str,
+) -> Result<()> {
+    let mut first: Option<&ModelConfig> = None;
+    for (k, net) in nets.into_iter().enumerate() {
+        if !net.members.is_empty() {
+            return Err(ResidualError::Config(format!(
+                "{what} {k} is itself an ensemble of {}",
+                net.ensemble_size()
+            )));
+        }
+        let cfg = *first.get_or_insert(net.config());
+        if net.config() != cfg {
+            return Err(ResidualError::Config(format!(
+                "{what} {k} has another configuration than {what} 0 \
+                 (they must share encoder, inputs, window and bound)"
+            )));
+        }
+    }
+    Ok(())
 }
 
 /// What a saved network's JSON holds besides its configuration.
