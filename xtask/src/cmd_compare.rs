@@ -8,7 +8,9 @@
 //! `--block N` resamples runs of N consecutive episodes (whole recordings when a recording is
 //! cut into N, as the reference world's are into 10) instead, a block bootstrap.
 //! `--episodes A..B` keeps only the episodes with dataset indices in that range, e.g. the
-//! recordings of a val split that no choice of the model ever saw.
+//! recordings of a val split that no choice of the model ever saw. The MDE line also gives the
+//! mean paired difference, its standard error and the episodes won, the numbers the PGRD rows'
+//! adoption rule judges by on held-out training recordings.
 
 use std::path::{Path, PathBuf};
 
@@ -98,6 +100,15 @@ pub struct MetricComparison {
     pub shrinkage: f64,
     /// 95 % percentile interval of the shrinkage over resamples.
     pub ci95: [f64; 2],
+    /// Mean over episodes of `before − after`, cm (positive: the compared model errs less).
+    pub mean_difference_cm: f64,
+    /// Standard error of that mean from the per-episode differences' spread, cm; absent for a
+    /// single episode. The adoption rule of the PGRD rows (`docs/RESULTS.md`) asks for a mean
+    /// difference above one of these on held-out training recordings.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub difference_se_cm: Option<f64>,
+    /// Episodes on which the compared model's error is lower.
+    pub lower_after: usize,
 }
 
 /// The whole comparison (`--json`).
@@ -162,6 +173,19 @@ pub fn run(args: &CompareArgs) -> anyhow::Result<()> {
             100.0 * m.ci95[0],
             100.0 * m.ci95[1],
         );
+        if m.metric == "mde_cm" {
+            let se = match m.difference_se_cm {
+                Some(se) if se > 0.0 => format!(
+                    " ± {se:.3} (standard error; {:+.2} of them)",
+                    m.mean_difference_cm / se
+                ),
+                _ => String::new(),
+            };
+            println!(
+                "  {:<11} paired before − after {:+.3} cm{se}, lower after on {} of {} episodes",
+                "", m.mean_difference_cm, m.lower_after, c.episodes
+            );
+        }
     }
     if c.blocks < FEW_UNITS {
         println!(
@@ -280,12 +304,22 @@ fn compare(
         let s = gap::paired_shrinkage(&sums(&x), &sums(&y), resamples, seed)
             .with_context(|| name.to_string())?;
         let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+        let diff: Vec<f64> = x.iter().zip(&y).map(|(p, q)| p - q).collect();
+        let d = mean(&diff);
+        let n = diff.len();
+        let difference_se_cm = (n > 1).then(|| {
+            let var = diff.iter().map(|v| (v - d).powi(2)).sum::<f64>() / (n - 1) as f64;
+            (var / n as f64).sqrt()
+        });
         metrics.push(MetricComparison {
             metric: name.into(),
             before_cm: mean(&x),
             after_cm: mean(&y),
             shrinkage: s.shrinkage,
             ci95: s.ci95,
+            mean_difference_cm: d,
+            difference_se_cm,
+            lower_after: diff.iter().filter(|v| **v > 0.0).count(),
         });
     }
     Ok(Comparison {
@@ -406,6 +440,31 @@ mod tests {
             parse_range(" 3 .. 8").unwrap(),
             EpisodeRange { start: 3, end: 8 }
         );
+    }
+
+    #[test]
+    fn the_paired_difference_has_its_standard_error_and_wins() {
+        // Differences before − after: 1, 0, -1, 2 (mean 0.5, sample sd sqrt(5/3)).
+        let b = report("pgrd", &[3.0, 2.0, 1.0, 4.0], false);
+        let a = report("pgrd", &[2.0, 2.0, 2.0, 2.0], false);
+        let c = compare(&b, &a, None, 1, 10, 0).unwrap();
+        let m = &c.metrics[0];
+        assert!((m.mean_difference_cm - 0.5).abs() < 1e-12, "{m:?}");
+        let se = (5.0f64 / 3.0).sqrt() / 2.0;
+        assert!((m.difference_se_cm.unwrap() - se).abs() < 1e-12, "{m:?}");
+        assert_eq!(m.lower_after, 2);
+        // A single episode has no spread to judge by.
+        let one = compare(
+            &report("pgrd", &[3.0], false),
+            &report("pgrd", &[2.0], false),
+            None,
+            1,
+            10,
+            0,
+        )
+        .unwrap();
+        assert_eq!(one.metrics[0].difference_se_cm, None);
+        assert_eq!(one.metrics[0].lower_after, 1);
     }
 
     #[test]
