@@ -102,9 +102,10 @@ pub struct MetricComparison {
     pub ci95: [f64; 2],
     /// Mean over episodes of `before − after`, cm (positive: the compared model errs less).
     pub mean_difference_cm: f64,
-    /// Standard error of that mean from the per-episode differences' spread, cm; absent for a
-    /// single episode. The adoption rule of the PGRD rows (`docs/RESULTS.md`) asks for a mean
-    /// difference above one of these on held-out training recordings.
+    /// Standard error of that mean from the per-episode differences' spread, cm
+    /// (`residual::paired_difference`); absent for a single episode. The adoption rule of the
+    /// PGRD rows (`docs/RESULTS.md`) asks for a mean difference above one of these on held-out
+    /// training recordings.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub difference_se_cm: Option<f64>,
     /// Episodes on which the compared model's error is lower.
@@ -304,22 +305,17 @@ fn compare(
         let s = gap::paired_shrinkage(&sums(&x), &sums(&y), resamples, seed)
             .with_context(|| name.to_string())?;
         let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
-        let diff: Vec<f64> = x.iter().zip(&y).map(|(p, q)| p - q).collect();
-        let d = mean(&diff);
-        let n = diff.len();
-        let difference_se_cm = (n > 1).then(|| {
-            let var = diff.iter().map(|v| (v - d).powi(2)).sum::<f64>() / (n - 1) as f64;
-            (var / n as f64).sqrt()
-        });
+        // The statistic `train`'s held-out selection judges by (`residual::clearly_better`).
+        let difference_se_cm = residual::paired_difference(&y, &x).map(|(_, se)| se);
         metrics.push(MetricComparison {
             metric: name.into(),
             before_cm: mean(&x),
             after_cm: mean(&y),
             shrinkage: s.shrinkage,
             ci95: s.ci95,
-            mean_difference_cm: d,
+            mean_difference_cm: mean(&x) - mean(&y),
             difference_se_cm,
-            lower_after: diff.iter().filter(|v| **v > 0.0).count(),
+            lower_after: x.iter().zip(&y).filter(|(p, q)| p > q).count(),
         });
     }
     Ok(Comparison {

@@ -56,5 +56,6 @@ pub use loss::{DISTANCE_EPS_CM, TrainLoss};
 pub use model::{GRIPPER_INPUTS, GROUND_INPUTS, INPUTS, REST_INPUTS, ResidualNet};
 pub use rollout::{History, HybridRollout, RolloutOptions, SimGradient, hybrid_rollout, predict};
 pub use train::{
-    BackboneOptionsFn, Sample, StartFrom, StepStats, TrainConfig, TrainSet, Trainer, clearly_better,
+    BackboneOptionsFn, Sample, StartFrom, StepStats, TrainConfig, TrainSet, Trainer,
+    clearly_better, paired_difference,
 };

@@ -16,7 +16,7 @@ use springs::{Backbone, BackboneOptions, SpringParams, State};
 mod holdout;
 mod oracle;
 
-pub use holdout::clearly_better;
+pub use holdout::{clearly_better, paired_difference};
 
 use crate::augment::{rotate_history, rotate_scene};
 use crate::loss::TrainLoss;

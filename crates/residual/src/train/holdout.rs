@@ -89,15 +89,22 @@ impl TrainSet {
 /// better on them (`docs/residual.md`, "Why PGRD was worse on the teddy"). False for
 /// mismatched lengths, fewer than two episodes or any non-finite error.
 pub fn clearly_better(candidate: &[f64], current: &[f64]) -> bool {
+    paired_difference(candidate, current).is_some_and(|(mean, se)| mean > se)
+}
+
+/// The mean of the paired differences `current − candidate` over episodes and its standard
+/// error (sample standard deviation over √n), in the errors' unit: what [`clearly_better`]
+/// compares. `None` for mismatched lengths, fewer than two episodes or any non-finite error.
+pub fn paired_difference(candidate: &[f64], current: &[f64]) -> Option<(f64, f64)> {
     let n = candidate.len();
     if n < 2 || current.len() != n {
-        return false;
+        return None;
     }
     if candidate.iter().chain(current).any(|e| !e.is_finite()) {
-        return false;
+        return None;
     }
     let d: Vec<f64> = current.iter().zip(candidate).map(|(a, b)| a - b).collect();
     let mean = d.iter().sum::<f64>() / n as f64;
     let var = d.iter().map(|x| (x - mean) * (x - mean)).sum::<f64>() / (n - 1) as f64;
-    mean > (var / n as f64).sqrt()
+    Some((mean, (var / n as f64).sqrt()))
 }
