@@ -307,13 +307,14 @@ fn compare(
         let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
         // The statistic `train`'s held-out selection judges by (`residual::clearly_better`).
         let difference_se_cm = residual::paired_difference(&y, &x).map(|(_, se)| se);
+        let (before_cm, after_cm) = (mean(&x), mean(&y));
         metrics.push(MetricComparison {
             metric: name.into(),
-            before_cm: mean(&x),
-            after_cm: mean(&y),
+            before_cm,
+            after_cm,
             shrinkage: s.shrinkage,
             ci95: s.ci95,
-            mean_difference_cm: mean(&x) - mean(&y),
+            mean_difference_cm: before_cm - after_cm,
             difference_se_cm,
             lower_after: x.iter().zip(&y).filter(|(p, q)| p > q).count(),
         });
