@@ -56,24 +56,42 @@ pub struct DevSplitArgs {
     out: PathBuf,
     /// How many of the last training episodes (in file order) become `val`: the same
     /// episodes `train --holdout N` holds out of the source.
+    #[arg(
+        long,
+        required_unless_present = "select_val",
+        conflicts_with = "select_val"
+    )]
+    hold_out: Option<usize>,
+    /// Instead of --hold-out: keep the last N `val` episodes as `val` (a selection set for
+    /// `train --select-on-val`, e.g. the recordings `gen --val <more>` added) and move the
+    /// other `val` episodes to `test`; every training episode stays in `train`.
     #[arg(long)]
-    hold_out: usize,
+    select_val: Option<usize>,
 }
 
 /// Writes the development split and prints what went where.
 pub fn dev_split(args: &DevSplitArgs) -> anyhow::Result<()> {
     let src = dataset::Dataset::open(&args.data)
         .with_context(|| format!("opening {}", args.data.display()))?;
-    let report = dataset::dev_split(&src, &args.out, args.hold_out)
+    let (report, what) = match (args.hold_out, args.select_val) {
+        (Some(n), _) => (
+            dataset::dev_split(&src, &args.out, n),
+            format!("the last {n} training episodes of {}", args.data.display()),
+        ),
+        (None, Some(n)) => (
+            dataset::select_split(&src, &args.out, n),
+            format!("the last {n} val episodes of {}", args.data.display()),
+        ),
+        (None, None) => anyhow::bail!("give --hold-out N or --select-val N"),
+    };
+    let report = report
         .with_context(|| format!("writing the development split to {}", args.out.display()))?;
-    let (first, last) = (report.moved_to_val.first(), report.moved_to_val.last());
+    let (first, last) = (report.val_indices.first(), report.val_indices.last());
     println!(
-        "{}: {} train, {} val (the last {} training episodes of {}, dataset indices {}..={}), {} test (its val and test) -> {}",
+        "{}: {} train, {} val ({what}, dataset indices {}..={}), {} test (the rest of its val, and its test) -> {}",
         src.meta.object,
         report.train,
         report.val,
-        report.val,
-        args.data.display(),
         first.copied().unwrap_or_default(),
         last.copied().unwrap_or_default(),
         report.test,

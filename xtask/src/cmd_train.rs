@@ -114,7 +114,14 @@ pub struct TrainArgs {
     /// never used. See docs/residual.md.
     #[arg(long, default_value_t = 0)]
     pub holdout: usize,
-    /// With --holdout: evaluate the held-out rollout MDE every this many optimiser steps
+    /// Instead of --holdout: choose the network, by the same rule, on the dataset's `val`
+    /// split and train on every training episode. Only for a development dataset whose `val`
+    /// is a selection set and whose `test` is what gets reported (`dev-split --select-val N`,
+    /// e.g. on `gen --val <more>` data): a dataset without a `test` split is refused, so that
+    /// no one chooses on the episodes they report. See docs/residual.md.
+    #[arg(long)]
+    pub select_on_val: bool,
+    /// With --holdout or --select-on-val: evaluate the held-out rollout MDE every this many optimiser steps
     /// (and at the end).
     #[arg(long, default_value_t = 200)]
     pub select_every: usize,
@@ -246,11 +253,16 @@ pub struct TrainArgs {
     pub progress: Option<(indicatif::MultiProgress, String)>,
 }
 
-/// Checkpoint selection on held-out training episodes (`--holdout`), in `train.json`.
+/// Checkpoint selection on held-out training episodes (`--holdout`) or on a development
+/// dataset's val split (`--select-on-val`), in `train.json`.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 struct Selection {
-    /// Dataset indices of the held-out training episodes (never sampled by the optimiser).
+    /// Dataset indices of the episodes chosen on (never sampled by the optimiser).
     episodes: Vec<usize>,
+    /// Their split: `train` (held out of it) or `val` (`--select-on-val`). Runs written before
+    /// the option read back as `train`.
+    #[serde(default = "train_split")]
+    split: String,
     /// Optimiser steps between evaluations.
     every: usize,
     /// Held-out rollout MDE of the backbone alone, cm.
@@ -263,6 +275,10 @@ struct Selection {
     best_step: usize,
     /// Its held-out rollout MDE per episode, cm.
     best_episode_mde_cm: Vec<f64>,
+}
+
+fn train_split() -> String {
+    "train".to_string()
 }
 
 impl Selection {
@@ -454,6 +470,38 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
     }
 }
 
+/// The `val` split of a development dataset as the set `--select-on-val` chooses on, built as
+/// the training episodes are (the same backbone and options). Refuses a dataset without a
+/// `test` split: its `val` is what the user reports.
+fn selection_set(
+    data: &Dataset,
+    backbone: &crate::common::BackboneFile,
+    protocol: scene::Protocol,
+) -> anyhow::Result<TrainSet> {
+    anyhow::ensure!(
+        !data.split_indices(Split::Test).is_empty(),
+        "--select-on-val chooses the network on {}'s val split, but it has no test split to \
+         report on: make a development copy first (`cargo xtask dev-split --select-val N`, or \
+         --hold-out N) and report its test split",
+        data.root.display()
+    );
+    anyhow::ensure!(
+        !data.split_indices(Split::Val).is_empty(),
+        "--select-on-val: {} has no val episodes to choose on",
+        data.root.display()
+    );
+    let options = backbone.options_for(data, protocol)?;
+    TrainSet::with_backbone_options(
+        data,
+        Split::Val,
+        &backbone.params,
+        &backbone.substep.scene_config(data)?,
+        protocol,
+        options,
+    )
+    .with_context(|| format!("loading the val episodes of {}", data.root.display()))
+}
+
 /// Trains one network, with the bound `args.residual_scale[0]`, the start mode
 /// `args.start_from[0]` and the loss `args.loss[0]`.
 fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
@@ -476,9 +524,18 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
         options,
     )
     .with_context(|| format!("loading training episodes of {}", args.data.display()))?;
-    let held = match args.holdout {
-        0 => None,
-        n => Some(set.hold_out(n)?),
+    let held = match (args.holdout, args.select_on_val) {
+        (0, false) => None,
+        (n, false) => Some(set.hold_out(n)?),
+        (0, true) => Some(selection_set(&data, &backbone, args.protocol.into())?),
+        (_, true) => {
+            anyhow::bail!("--holdout and --select-on-val both choose the network: give one of them")
+        }
+    };
+    let held_what = if args.select_on_val {
+        format!("val episodes of {}", args.data.display())
+    } else {
+        "held-out training episodes".to_string()
     };
     let model_cfg = model_config(args);
     let train_cfg = TrainConfig {
@@ -584,6 +641,7 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
             Some(s) => s,
             None => Selection {
                 episodes: held.episode_indices(),
+                split: if args.select_on_val { "val" } else { "train" }.to_string(),
                 every: args.select_every.max(1),
                 backbone_mde_cm: {
                     let e = held.rollout_mde_cm(None)?;
@@ -759,7 +817,7 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
         say(
             args,
             format!(
-                "kept the backbone: no network of {} steps beat it clearly on {} held-out training episodes (backbone {:.3} cm); residual.safetensors adds no residual",
+                "kept the backbone: no network of {} steps beat it clearly on {} {held_what} (backbone {:.3} cm); residual.safetensors adds no residual",
                 trainer.step,
                 sel.episodes.len(),
                 sel.backbone_mde_cm
@@ -769,7 +827,7 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
         say(
             args,
             format!(
-                "selected the network of step {} of {}: held-out rollout MDE {:.3} cm on {} training episodes (backbone {:.3} cm)",
+                "selected the network of step {} of {}: rollout MDE {:.3} cm on {} {held_what} (backbone {:.3} cm)",
                 sel.best_step,
                 trainer.step,
                 sel.best_mde_cm(),
@@ -812,6 +870,58 @@ pub(crate) fn above_bars(bars: Option<&indicatif::MultiProgress>, print: impl Fn
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn select_on_val_chooses_on_a_development_copys_val_and_nowhere_else() {
+        #[derive(clap::Parser)]
+        struct Cli {
+            #[command(flatten)]
+            train: TrainArgs,
+        }
+        let dir = std::env::temp_dir().join(format!("pgrd-select-on-val-{}", std::process::id()));
+        std::fs::remove_dir_all(&dir).ok();
+        let fit = crate::cmd_fit::FitArgs::quick_rope_fixture(dir.join("run"));
+        crate::cmd_fit::run(&fit).unwrap();
+        let fixture = Dataset::open(Path::new(crate::cmd_fit::FIXTURE_ROPE)).unwrap();
+        // The fixture's val episodes are 3 and 4: the last one chooses, the other is test.
+        dataset::select_split(&fixture, &dir.join("sel"), 1).unwrap();
+        let run_dir = dir.join("run");
+        let train = |data: &Path, extra: &[&str]| {
+            let mut argv = vec![
+                "train",
+                "--data",
+                data.to_str().unwrap(),
+                "--run",
+                run_dir.to_str().unwrap(),
+                "--iterations",
+                "2",
+                "--select-every",
+                "1",
+                "--restart",
+                "--quiet",
+            ];
+            argv.extend_from_slice(extra);
+            let args = <Cli as clap::Parser>::try_parse_from(argv).unwrap().train;
+            run(&args)
+        };
+        train(&dir.join("sel"), &["--select-on-val"]).unwrap();
+        let text = std::fs::read_to_string(dir.join("run/train.json")).unwrap();
+        let report: serde_json::Value = serde_json::from_str(&text).unwrap();
+        assert_eq!(report["selection"]["split"], "val");
+        assert_eq!(report["selection"]["episodes"], serde_json::json!([4]));
+        // All three training episodes were trained on: none held out.
+        assert_eq!(report["episodes"], 3, "{}", report["episodes"]);
+        // The fixture itself has no test split: its val is what a user reports, so no choice.
+        let err = train(fixture.root.as_path(), &["--select-on-val"])
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("dev-split"), "{err}");
+        let err = train(&dir.join("sel"), &["--select-on-val", "--holdout", "1"])
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("give one"), "{err}");
+        std::fs::remove_dir_all(&dir).ok();
+    }
 
     #[test]
     fn an_ensembles_run_is_not_trained_over() {
@@ -900,6 +1010,7 @@ mod tests {
         for first_is_backbone in [true, false] {
             let mut sel = Selection {
                 episodes: held.episode_indices(),
+                split: train_split(),
                 every: 10,
                 backbone_mde_cm: 0.0,
                 steps: Vec::new(),

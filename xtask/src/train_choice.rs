@@ -259,10 +259,11 @@ fn copy_atomic(from: &Path, to: &Path) -> anyhow::Result<()> {
 /// and keeps the chosen one in `args.run`.
 pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
     anyhow::ensure!(
-        args.holdout > 0,
+        args.holdout > 0 || args.select_on_val,
         "several --residual-scale, --start-from or --loss values, or --widen-bounds or \
          --narrow-bounds, need \
-         --holdout K: the recipe is chosen on held-out training episodes, never on the val split"
+         --holdout K: the recipe is chosen on held-out training episodes, never on the val split \
+         (or --select-on-val, on a development dataset's val split)"
     );
     anyhow::ensure!(
         args.init_from.is_none(),

@@ -7,6 +7,11 @@
 //! its own test. [`dev_split`] writes a copy of a dataset in which the last `hold_out`
 //! training episodes become `val` (exactly the episodes `train --holdout <hold_out>` holds
 //! out of the original), the old `val` becomes `test`, and nothing else changes.
+//!
+//! Where more recordings can be had (a generated dataset, `gen --val <more>`), two held-out
+//! recordings judge a network poorly; [`select_split`] instead keeps the last `select` val
+//! episodes as `val`, the selection set, moves the rest of `val` to `test`, and leaves every
+//! training episode to train on (`train --select-on-val`).
 
 use std::path::Path;
 
@@ -19,12 +24,13 @@ use crate::{Dataset, DatasetMeta, Error, Result, Split, write_atomic};
 pub struct DevSplitReport {
     /// Training episodes left in `train`.
     pub train: usize,
-    /// The new `val` episodes (the last `hold_out` of the old `train`).
+    /// The new `val` episodes (the last `hold_out` of the old `train`, or with
+    /// [`select_split`] the last `select` of the old `val`).
     pub val: usize,
-    /// `test` episodes: the old `val` plus any old `test`.
+    /// `test` episodes: the old `val` (less the kept ones) plus any old `test`.
     pub test: usize,
-    /// Dataset indices (the same in both datasets) of the episodes moved to `val`.
-    pub moved_to_val: Vec<usize>,
+    /// Dataset indices (the same in both datasets) of the new `val` episodes.
+    pub val_indices: Vec<usize>,
 }
 
 /// The index of `meta` with its last `hold_out` training episodes (in file order) moved to
@@ -82,6 +88,56 @@ pub fn dev_split_meta(meta: &DatasetMeta, hold_out: usize) -> Result<(DatasetMet
 pub fn dev_split(src: &Dataset, out: &Path, hold_out: usize) -> Result<DevSplitReport> {
     let (meta, moved) =
         dev_split_meta(&src.meta, hold_out).map_err(|e| relocate(e, &src.root.join(INDEX_FILE)))?;
+    write_copy(src, out, &meta, moved)
+}
+
+/// The index of `meta` with its last `select` `val` episodes (in file order) kept as `val`,
+/// its other `val` episodes moved to `test`, and its training episodes unchanged; also the
+/// dataset indices of the kept episodes. Errors when `select` is 0 or leaves no episode to
+/// move to `test`.
+pub fn select_split_meta(meta: &DatasetMeta, select: usize) -> Result<(DatasetMeta, Vec<usize>)> {
+    let val: Vec<usize> = (meta.episodes.iter().enumerate())
+        .filter(|(_, e)| e.split == Split::Val)
+        .map(|(i, _)| i)
+        .collect();
+    if select == 0 || select >= val.len() {
+        return Err(Error::invalid(
+            INDEX_FILE,
+            format!(
+                "cannot keep {select} of {} val episodes for selection (need 1 ..= {}, so that \
+                 some stay to be reported on as test)",
+                val.len(),
+                val.len().saturating_sub(1)
+            ),
+        ));
+    }
+    let kept = val[val.len() - select..].to_vec();
+    let mut out = meta.clone();
+    for (i, e) in out.episodes.iter_mut().enumerate() {
+        if e.split == Split::Val && !kept.contains(&i) {
+            e.split = Split::Test;
+        }
+    }
+    Ok((out, kept))
+}
+
+/// Writes the selection split of `src` (see [`select_split_meta`]) as a new dataset in `out`,
+/// copied as [`dev_split`] copies: a new or empty directory, every file atomically, the index
+/// last.
+pub fn select_split(src: &Dataset, out: &Path, select: usize) -> Result<DevSplitReport> {
+    let (meta, kept) = select_split_meta(&src.meta, select)
+        .map_err(|e| relocate(e, &src.root.join(INDEX_FILE)))?;
+    write_copy(src, out, &meta, kept)
+}
+
+/// Copies every plain file of `src` but its index to the new or empty directory `out`, then
+/// writes `meta` as the index.
+fn write_copy(
+    src: &Dataset,
+    out: &Path,
+    meta: &DatasetMeta,
+    val_indices: Vec<usize>,
+) -> Result<DevSplitReport> {
     let occupied = out.exists()
         && std::fs::read_dir(out)
             .map_err(|e| Error::io(out, e))?
@@ -106,13 +162,13 @@ pub fn dev_split(src: &Dataset, out: &Path, hold_out: usize) -> Result<DevSplitR
         let bytes = std::fs::read(&path).map_err(|e| Error::io(&path, e))?;
         write_atomic(&out.join(entry.file_name()), &bytes)?;
     }
-    write_index(out, &meta)?;
+    write_index(out, meta)?;
     let count = |s| meta.episodes.iter().filter(|e| e.split == s).count();
     Ok(DevSplitReport {
         train: count(Split::Train),
         val: count(Split::Val),
         test: count(Split::Test),
-        moved_to_val: moved,
+        val_indices,
     })
 }
 

@@ -10,7 +10,9 @@
 //!   into a new dataset or after an existing one's episodes ([`DatasetWriter::append`]).
 //! - [`import`] converts other formats (the DEFORM cable pickles) into this one.
 //! - [`dev_split`] copies a dataset with its last training episodes as `val` and its `val` as
-//!   `test`, so models can be chosen on training recordings and scored once on the rest.
+//!   `test`, so models can be chosen on training recordings and scored once on the rest;
+//!   [`select_split`] keeps the last `val` recordings as `val` (a selection set) and moves the
+//!   others to `test`, for data where more recordings can be had.
 //! - [`carried_frame`] reads a frame with each occluded point carried from its last sighting
 //!   (a tracker's stored position for a lost point is stale); [`MaterialNeighbours`] places the
 //!   points not seen at all yet, from the neighbours they keep across the training recordings.
@@ -43,7 +45,7 @@ mod neighbours;
 mod occlusion;
 
 pub use atomic::write_atomic;
-pub use dev_split::{DevSplitReport, dev_split, dev_split_meta};
+pub use dev_split::{DevSplitReport, dev_split, dev_split_meta, select_split, select_split_meta};
 pub use episode::Episode;
 pub use error::Error;
 pub use meta::{

@@ -3,7 +3,7 @@
 
 use dataset::{
     Dataset, DatasetMeta, DatasetWriter, Episode, EpisodeEntry, Error, Manipulation, Split,
-    dev_split, dev_split_meta,
+    dev_split, dev_split_meta, select_split, select_split_meta,
 };
 use glam::Vec3;
 use proptest::prelude::*;
@@ -47,7 +47,7 @@ fn moves_the_last_training_episodes_to_val_and_val_to_test() {
     let src = interleaved(&base.join("src"));
     let out = base.join("dev");
     let report = dev_split(&src, &out, 2).unwrap();
-    assert_eq!(report.moved_to_val, vec![7, 8]);
+    assert_eq!(report.val_indices, vec![7, 8]);
     assert_eq!((report.train, report.val, report.test), (4, 2, 3));
     let dev = Dataset::open(&out).unwrap();
     assert_eq!(dev.split_indices(Split::Train), vec![0, 1, 3, 5]);
@@ -55,7 +55,7 @@ fn moves_the_last_training_episodes_to_val_and_val_to_test() {
     assert_eq!(dev.split_indices(Split::Test), vec![2, 4, 6]);
     // What `train --holdout 2` holds out of the original: its last two training episodes.
     let train = src.split_indices(Split::Train);
-    assert_eq!(report.moved_to_val, train[train.len() - 2..]);
+    assert_eq!(report.val_indices, train[train.len() - 2..]);
     // Everything else is the source's, and every file is copied byte for byte.
     assert_eq!(dev.meta.object, src.meta.object);
     for k in 0..src.meta.episodes.len() {
@@ -99,8 +99,63 @@ fn refuses_bad_counts_and_occupied_outputs_before_writing() {
     assert!(dev_split(&src, &empty, 1).is_ok());
 }
 
+#[test]
+fn select_split_keeps_the_last_val_episodes_and_every_training_one() {
+    let base = common::tmpdir("devsplit", "select");
+    let src = interleaved(&base.join("src"));
+    let out = base.join("sel");
+    let report = select_split(&src, &out, 1).unwrap();
+    // val episodes of the source: 2 and 6; the last one is the selection set.
+    assert_eq!(report.val_indices, vec![6]);
+    assert_eq!((report.train, report.val, report.test), (6, 1, 2));
+    let sel = Dataset::open(&out).unwrap();
+    assert_eq!(
+        sel.split_indices(Split::Train),
+        src.split_indices(Split::Train)
+    );
+    assert_eq!(sel.split_indices(Split::Val), vec![6]);
+    assert_eq!(sel.split_indices(Split::Test), vec![2, 4]);
+    for k in 0..src.meta.episodes.len() {
+        assert_eq!(sel.load_episode(k).unwrap(), src.load_episode(k).unwrap());
+    }
+    // Keeping every val episode (nothing left to report on) or none is refused, unwritten.
+    for n in [0, 2, 3] {
+        let out = base.join(format!("sel{n}"));
+        let err = select_split(&src, &out, n).unwrap_err().to_string();
+        assert!(err.contains("2 val episodes"), "{err}");
+        assert!(err.contains("dataset.json"), "{err}");
+        assert!(!out.exists(), "nothing may be written for n = {n}");
+    }
+}
+
 proptest! {
     #![proptest_config(ProptestConfig::with_cases(64))]
+    #[test]
+    fn select_split_moves_only_the_earlier_val_episodes(splits in prop::collection::vec(0u8..3, 1..30), n in 0usize..12) {
+        let split_of = |k: u8| match k { 0 => Split::Train, 1 => Split::Val, _ => Split::Test };
+        let mut meta = DatasetMeta::new("x", 10.0, Manipulation::Grasp);
+        meta.episodes = splits.iter().enumerate()
+            .map(|(i, &k)| EpisodeEntry { file: format!("ep_{i:04}.safetensors"), split: split_of(k) })
+            .collect();
+        let val: Vec<usize> = (0..splits.len()).filter(|&i| splits[i] == 1).collect();
+        match select_split_meta(&meta, n) {
+            Err(_) => prop_assert!(n == 0 || n >= val.len()),
+            Ok((sel, kept)) => {
+                prop_assert!(n >= 1 && n < val.len());
+                prop_assert_eq!(&kept, &val[val.len() - n..].to_vec());
+                for (i, (a, b)) in meta.episodes.iter().zip(&sel.episodes).enumerate() {
+                    prop_assert_eq!(&a.file, &b.file);
+                    let want = match a.split {
+                        Split::Val if kept.contains(&i) => Split::Val,
+                        Split::Val => Split::Test,
+                        other => other,
+                    };
+                    prop_assert_eq!(b.split, want);
+                }
+            }
+        }
+    }
+
     #[test]
     fn counts_and_order_are_kept(splits in prop::collection::vec(0u8..3, 1..30), n in 0usize..12) {
         let split_of = |k: u8| match k { 0 => Split::Train, 1 => Split::Val, _ => Split::Test };
