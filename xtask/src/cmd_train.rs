@@ -121,8 +121,8 @@ pub struct TrainArgs {
     /// no one chooses on the episodes they report. See docs/residual.md.
     #[arg(long)]
     pub select_on_val: bool,
-    /// With --holdout or --select-on-val: evaluate the held-out rollout MDE every this many optimiser steps
-    /// (and at the end).
+    /// With --holdout or --select-on-val: evaluate the rollout MDE of the episodes chosen on
+    /// every this many optimiser steps (and at the end).
     #[arg(long, default_value_t = 200)]
     pub select_every: usize,
     /// Ignore an existing checkpoint and start over.

@@ -37,10 +37,7 @@ pub struct DevSplitReport {
 /// `val` and its `val` episodes moved to `test`. Errors when `hold_out` is 0 or leaves no
 /// training episode.
 pub fn dev_split_meta(meta: &DatasetMeta, hold_out: usize) -> Result<(DatasetMeta, Vec<usize>)> {
-    let train: Vec<usize> = (meta.episodes.iter().enumerate())
-        .filter(|(_, e)| e.split == Split::Train)
-        .map(|(i, _)| i)
-        .collect();
+    let train = meta.split_indices(Split::Train);
     if hold_out == 0 || hold_out >= train.len() {
         return Err(Error::invalid(
             INDEX_FILE,
@@ -96,10 +93,7 @@ pub fn dev_split(src: &Dataset, out: &Path, hold_out: usize) -> Result<DevSplitR
 /// dataset indices of the kept episodes. Errors when `select` is 0 or leaves no episode to
 /// move to `test`.
 pub fn select_split_meta(meta: &DatasetMeta, select: usize) -> Result<(DatasetMeta, Vec<usize>)> {
-    let val: Vec<usize> = (meta.episodes.iter().enumerate())
-        .filter(|(_, e)| e.split == Split::Val)
-        .map(|(i, _)| i)
-        .collect();
+    let val = meta.split_indices(Split::Val);
     if select == 0 || select >= val.len() {
         return Err(Error::invalid(
             INDEX_FILE,

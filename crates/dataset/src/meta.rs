@@ -104,6 +104,14 @@ pub struct DatasetMeta {
 }
 
 impl DatasetMeta {
+    /// Indices of the episodes in `split`, in file order.
+    pub fn split_indices(&self, split: Split) -> Vec<usize> {
+        (self.episodes.iter().enumerate())
+            .filter(|(_, e)| e.split == split)
+            .map(|(i, _)| i)
+            .collect()
+    }
+
     /// Metadata with the format's defaults: gravity −9.81 m/s² along z, ground at z = 0,
     /// gripper radius 0.04 m, point structure, no episodes yet.
     pub fn new(object: &str, fps: f32, manipulation: Manipulation) -> Self {
@@ -186,10 +194,7 @@ impl Dataset {
 
     /// Indices of the episodes in `split`, in file order.
     pub fn split_indices(&self, split: Split) -> Vec<usize> {
-        (self.meta.episodes.iter().enumerate())
-            .filter(|(_, e)| e.split == split)
-            .map(|(i, _)| i)
-            .collect()
+        self.meta.split_indices(split)
     }
 
     /// Path of episode `index`.
