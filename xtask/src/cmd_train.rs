@@ -216,6 +216,13 @@ pub struct TrainArgs {
     /// drifted state back (docs/residual.md, "Input noise and weight decay"); 0: off.
     #[arg(long, default_value_t = 0.0)]
     pub input_noise: f32,
+    /// Roll out and differentiate the batch's segments in parallel, one per thread of
+    /// --threads, their gradients summed in the batch's order: the same weights on any number
+    /// of threads, equal to the default way's to rounding (not bit for bit, so runs with and
+    /// without it differ in their digits); faster when --threads leaves a thread per segment
+    /// (docs/BENCHMARKS.md, "Training").
+    #[arg(long)]
+    pub parallel_batch: bool,
     /// Start from the weights of this network (a `residual.safetensors` with its
     /// `residual.json` beside it) instead of a fresh initialisation, e.g. to fine-tune a
     /// network trained on 5-step segments on whole windows. Its configuration must match the
@@ -568,6 +575,7 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
         yardstick_every: args.yardstick_every,
         weight_decay: args.weight_decay,
         input_noise_m: args.input_noise,
+        parallel_batch: args.parallel_batch,
     };
     let unit = train_cfg.loss.unit();
     let resuming = args.run.join("train_ckpt.safetensors").exists() && !args.restart;

@@ -11,7 +11,7 @@ use residual::{ModelConfig, TrainConfig};
 
 /// Training settings that must match to resume. `iterations` and `decay_steps` may change (to
 /// extend a run); everything else decides what is learned.
-const TRAIN_KEYS: [&str; 14] = [
+const TRAIN_KEYS: [&str; 15] = [
     "rollout_steps",
     "batch",
     "lr",
@@ -28,6 +28,9 @@ const TRAIN_KEYS: [&str; 14] = [
     "ema_decay",
     "weight_decay",
     "input_noise_m",
+    // Another order of adding the gradients: resuming across it would train on with other
+    // rounding than the run's name says.
+    "parallel_batch",
 ];
 
 /// An error naming every setting in which `checkpoint_json` (a `train_ckpt.json`) differs from
@@ -118,6 +121,13 @@ mod tests {
         };
         let err = check(&path, &model, &averaged).unwrap_err().to_string();
         assert!(err.contains("ema_decay"), "{err}");
+        // The batch's gradient added in another order trains other digits.
+        let parallel = TrainConfig {
+            parallel_batch: true,
+            ..train.clone()
+        };
+        let err = check(&path, &model, &parallel).unwrap_err().to_string();
+        assert!(err.contains("parallel_batch"), "{err}");
 
         // A checkpoint written before a setting existed is not held to it.
         let mut old: serde_json::Value =

@@ -13,6 +13,7 @@ use scene::{Protocol, Scene, SceneConfig, Window};
 use serde::{Deserialize, Serialize};
 use springs::{Backbone, BackboneOptions, SpringParams, State};
 
+mod batch_grads;
 mod holdout;
 mod oracle;
 
@@ -20,7 +21,6 @@ pub use holdout::{clearly_better, paired_difference};
 
 use crate::augment::{rotate_history, rotate_scene};
 use crate::loss::TrainLoss;
-use crate::rollout::{backbone_loss, hybrid_rollout_with_loss};
 use crate::{
     History, ResidualError, ResidualNet, Result, RolloutOptions, SimGradient, hybrid_rollout,
 };
@@ -87,6 +87,14 @@ pub struct TrainConfig {
     /// segments sampled are those of the same run without it.
     #[serde(default)]
     pub input_noise_m: f32,
+    /// Roll out and differentiate the batch's segments each on a rayon thread of its own and
+    /// sum their gradients in the batch's order, instead of differentiating their summed loss
+    /// once on the calling thread (false, as every configuration written before this option).
+    /// The same mean loss, its gradient added in another order: weights agree with the
+    /// one-graph way to rounding, and are the same bits on any number of threads. Faster when
+    /// the pool has a thread per segment to spare (docs/BENCHMARKS.md).
+    #[serde(default)]
+    pub parallel_batch: bool,
 }
 
 fn every_step() -> usize {
@@ -136,6 +144,7 @@ impl Default for TrainConfig {
             yardstick_every: 10,
             weight_decay: 0.0,
             input_noise_m: 0.0,
+            parallel_batch: false,
         }
     }
 }
@@ -633,80 +642,54 @@ impl Trainer {
     /// One optimiser step on the given samples (drawn from `set`).
     pub fn train_on(&mut self, set: &TrainSet, samples: &[Sample]) -> Result<StepStats> {
         let mut rng = self.rng_at(self.step);
-        let mut total: Option<Tensor> = None;
-        let (mut used, mut diverged) = (0usize, 0usize);
-        let (mut base_sum, mut base_n) = (0.0, 0usize);
+        // Drawn in the batch's order before any rollout runs, so both ways of computing the
+        // gradients roll out the same segments with the same curve orders.
+        let opts: Vec<RolloutOptions> = samples
+            .iter()
+            .map(|_| {
+                let mut curves = [0usize, 1, 2, 3];
+                for i in (1..curves.len()).rev() {
+                    curves.swap(i, rng.random_range(0..=i));
+                }
+                RolloutOptions {
+                    steps: self.cfg.rollout_steps,
+                    train: true,
+                    curves,
+                    sim_gradient: self.cfg.sim_gradient,
+                }
+            })
+            .collect();
         let yardstick =
             self.cfg.yardstick_every > 0 && self.step.is_multiple_of(self.cfg.yardstick_every);
-        for sample in samples {
-            let mut curves = [0usize, 1, 2, 3];
-            for i in (1..curves.len()).rev() {
-                curves.swap(i, rng.random_range(0..=i));
-            }
-            let opts = RolloutOptions {
-                steps: self.cfg.rollout_steps,
-                train: true,
-                curves,
-                sim_gradient: self.cfg.sim_gradient,
-            };
-            match hybrid_rollout_with_loss(
-                &self.net,
-                set.backbone(sample),
-                &sample.scene,
-                &sample.history,
-                opts,
-                self.cfg.loss,
-            ) {
-                Ok(out) => {
-                    let l = out
-                        .loss
-                        .ok_or_else(|| ResidualError::Input("no loss".into()))?;
-                    total = Some(match total {
-                        Some(t) => (t + l)?,
-                        None => l,
-                    });
-                    used += 1;
-                    if yardstick
-                        && let Some(b) = backbone_loss(
-                            set.backbone(sample),
-                            &sample.scene,
-                            self.cfg.rollout_steps,
-                            self.cfg.loss,
-                        )?
-                    {
-                        base_sum += b;
-                        base_n += 1;
-                    }
-                }
-                Err(ResidualError::Diverged { .. }) => diverged += 1,
-                Err(e) => return Err(e),
-            }
-        }
+        let batch = batch_grads::Batch {
+            net: &self.net,
+            vars: &self.vars,
+            set,
+            cfg: &self.cfg,
+            yardstick,
+        };
+        let out = batch.grads(samples, &opts)?;
         let lr = self.cfg.lr_at(self.step);
         self.step += 1;
-        let Some(total) = total else {
+        let Some(out) = out else {
             return Ok(StepStats {
                 loss: f64::NAN,
                 backbone_loss: f64::NAN,
                 grad_norm: f64::NAN,
                 lr,
-                diverged,
+                diverged: samples.len(),
             });
         };
-        let loss = (total / used as f64)?;
-        let value = f64::from(loss.to_scalar::<f32>()?);
+        let value = f64::from(out.loss.to_scalar::<f32>()?);
         if !value.is_finite() {
             return Err(ResidualError::Diverged {
                 step: self.step,
                 what: format!("training loss {value}"),
             });
         }
-        let grads = loss.backward()?;
-        let g: Vec<Option<Tensor>> = self
-            .vars
-            .iter()
-            .map(|(_, v)| grads.get(v.as_tensor()).cloned())
-            .collect();
+        let (base_sum, base_n) = out.backbone;
+        let diverged = out.diverged;
+        let g = out.grads;
         let mut sq = 0f64;
         for t in g.iter().flatten() {
             sq += f64::from(t.sqr()?.sum_all()?.to_scalar::<f32>()?);
