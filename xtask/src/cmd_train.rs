@@ -134,6 +134,23 @@ pub struct TrainArgs {
     /// Ablation: encoder family.
     #[arg(long, value_enum, default_value_t = EncoderArg::Ptv3)]
     pub encoder: EncoderArg,
+    /// Channels of the encoder's stages, finest first (default 16,32,64: sized for a 2-core
+    /// CPU, docs/residual.md "Encoder"); one more stage per entry. Each must be a multiple of
+    /// the 16-channel attention head.
+    #[arg(long, value_delimiter = ',')]
+    pub enc_channels: Option<Vec<usize>>,
+    /// Transformer blocks per encoder stage (default 1 each; as many entries as
+    /// --enc-channels).
+    #[arg(long, value_delimiter = ',')]
+    pub enc_depths: Option<Vec<usize>>,
+    /// Channels of the decoder's stages, coarsest first (default 32,32; one entry fewer than
+    /// --enc-channels); the last is the per-particle feature width.
+    #[arg(long, value_delimiter = ',')]
+    pub dec_channels: Option<Vec<usize>>,
+    /// Transformer blocks per decoder stage (default 1 each; as many entries as
+    /// --dec-channels).
+    #[arg(long, value_delimiter = ',')]
+    pub dec_depths: Option<Vec<usize>>,
     /// Ablation: a linear head instead of the Fourier-feature decoder.
     #[arg(long)]
     pub no_decoder: bool,
@@ -369,7 +386,24 @@ struct TrainReport {
 }
 
 fn model_config(args: &TrainArgs) -> ModelConfig {
+    let sizes = ModelConfig::default();
     ModelConfig {
+        enc_channels: args.enc_channels.clone().unwrap_or(sizes.enc_channels),
+        enc_depths: args
+            .enc_depths
+            .clone()
+            .unwrap_or_else(|| match &args.enc_channels {
+                Some(channels) => vec![1; channels.len()],
+                None => sizes.enc_depths,
+            }),
+        dec_channels: args.dec_channels.clone().unwrap_or(sizes.dec_channels),
+        dec_depths: args
+            .dec_depths
+            .clone()
+            .unwrap_or_else(|| match &args.dec_channels {
+                Some(channels) => vec![1; channels.len()],
+                None => sizes.dec_depths,
+            }),
         encoder: match args.encoder {
             EncoderArg::Ptv3 => EncoderKind::Ptv3,
             EncoderArg::Pointnet => EncoderKind::Pointnet,
@@ -464,6 +498,10 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
          train into a new run directory",
         args.run.display()
     );
+    // Sizes from the command line are checked before any data are read.
+    model_config(args).validate().context(
+        "the network's sizes (--enc-channels, --enc-depths, --dec-channels, --dec-depths)",
+    )?;
     match (
         args.residual_scale.len(),
         args.start_from.len(),
@@ -947,6 +985,45 @@ mod tests {
         let err = run(&args).unwrap_err().to_string();
         assert!(err.contains("holds an ensemble"), "{err}");
         std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn size_flags_reach_the_network_and_bad_sizes_are_refused_before_any_data() {
+        #[derive(clap::Parser)]
+        struct Cli {
+            #[command(flatten)]
+            train: TrainArgs,
+        }
+        let parse = |extra: &[&str]| {
+            let mut argv = vec!["train", "--data", "no-such-data", "--run", "no-such-run"];
+            argv.extend_from_slice(extra);
+            <Cli as clap::Parser>::try_parse_from(argv).unwrap().train
+        };
+        assert_eq!(model_config(&parse(&[])), ModelConfig::default());
+        let wide = model_config(&parse(&[
+            "--enc-channels",
+            "32,64,128",
+            "--dec-channels",
+            "64,64",
+        ]));
+        assert_eq!(wide.enc_channels, [32, 64, 128]);
+        assert_eq!(wide.enc_depths, [1, 1, 1]);
+        assert_eq!(wide.dec_channels, [64, 64]);
+        assert_eq!(wide.feature_dim(), 64);
+        wide.validate().unwrap();
+        let deep = model_config(&parse(&["--enc-depths", "2,2,2", "--dec-depths", "2,2"]));
+        assert_eq!(deep.enc_channels, ModelConfig::default().enc_channels);
+        assert_eq!((deep.enc_depths, deep.dec_depths), (vec![2; 3], vec![2; 2]));
+        // A fourth stage without its decoder stage, and a width the heads do not divide: both
+        // refused by name before the (missing) dataset is opened.
+        for bad in [
+            &["--enc-channels", "16,32,64,128"][..],
+            &["--enc-channels", "16,32,60"][..],
+        ] {
+            let err = format!("{:#}", run(&parse(bad)).unwrap_err());
+            assert!(err.contains("--enc-channels"), "{err}");
+            assert!(!err.contains("no-such-data"), "{err}");
+        }
     }
 
     #[test]

@@ -73,6 +73,36 @@ fn bench(c: &mut Criterion) {
         };
         b.iter(|| hybrid_rollout(&net, &bb, &scene, &history, opts).unwrap())
     });
+    // Larger networks than the default (`train --enc-channels ... --dec-depths`): four times
+    // the channels' products, and twice the blocks.
+    let sized = [
+        (
+            "hybrid_step_wide_32_64_128",
+            ModelConfig {
+                enc_channels: vec![32, 64, 128],
+                dec_channels: vec![64, 64],
+                ..ModelConfig::default()
+            },
+        ),
+        (
+            "hybrid_step_deep_2_blocks",
+            ModelConfig {
+                enc_depths: vec![2, 2, 2],
+                dec_depths: vec![2, 2],
+                ..ModelConfig::default()
+            },
+        ),
+    ];
+    for (name, cfg) in sized {
+        let net = ResidualNet::new(&cfg, 0).unwrap();
+        let opts = RolloutOptions {
+            steps: 1,
+            ..Default::default()
+        };
+        g.bench_function(name, |b| {
+            b.iter(|| hybrid_rollout(&net, &bb, &scene, &history, opts).unwrap())
+        });
+    }
     // An ensemble evaluates every member each step (`docs/residual.md`, "Ensembles").
     let ensemble = ResidualNet::ensemble(
         (0..4)
