@@ -73,8 +73,9 @@ fn bench(c: &mut Criterion) {
         };
         b.iter(|| hybrid_rollout(&net, &bb, &scene, &history, opts).unwrap())
     });
-    // Larger networks than the default (`train --enc-channels ... --dec-depths`): four times
-    // the channels' products, and twice the blocks.
+    // Other sizes than the default (`train --enc-channels ... --dec-depths`): four times the
+    // channels' products, twice the blocks, and two smaller ones (`docs/residual.md`, "Smaller,
+    // wider and deeper networks").
     let sized = [
         (
             "hybrid_step_wide_32_64_128",
@@ -89,6 +90,24 @@ fn bench(c: &mut Criterion) {
             ModelConfig {
                 enc_depths: vec![2, 2, 2],
                 dec_depths: vec![2, 2],
+                ..ModelConfig::default()
+            },
+        ),
+        (
+            "hybrid_step_small_16_16_32",
+            ModelConfig {
+                enc_channels: vec![16, 16, 32],
+                dec_channels: vec![16, 16],
+                ..ModelConfig::default()
+            },
+        ),
+        (
+            "hybrid_step_two_stages_16_32",
+            ModelConfig {
+                enc_channels: vec![16, 32],
+                enc_depths: vec![1, 1],
+                dec_channels: vec![32],
+                dec_depths: vec![1],
                 ..ModelConfig::default()
             },
         ),

@@ -1,6 +1,7 @@
 //! Cost of one optimiser step on a batch of four 5-step training rollouts of the flag fixture
 //! (default `ModelConfig`), with the batch differentiated as one graph (the default) and per
-//! rollout in parallel (`TrainConfig::parallel_batch`).
+//! rollout in parallel (`TrainConfig::parallel_batch`), and of the two-stage network as one
+//! graph.
 //!
 //! `RAYON_NUM_THREADS=2 cargo bench -p pgrd-residual --bench train_step` (and with 1)
 
@@ -43,6 +44,23 @@ fn bench(c: &mut Criterion) {
             b.iter(|| trainer.train_on(&set, &samples).unwrap())
         });
     }
+    // The two-stage network that trains the rope's row recipe as well as the default
+    // (`docs/residual.md`, "Smaller, wider and deeper networks"), the batch as one graph.
+    let two_stages = ModelConfig {
+        enc_channels: vec![16, 32],
+        enc_depths: vec![1, 1],
+        dec_channels: vec![32],
+        dec_depths: vec![1],
+        ..ModelConfig::default()
+    };
+    let cfg = TrainConfig {
+        batch: 4,
+        ..TrainConfig::default()
+    };
+    let mut trainer = Trainer::new(ResidualNet::new(&two_stages, 0).unwrap(), cfg).unwrap();
+    g.bench_function("one_graph_two_stages_16_32", |b| {
+        b.iter(|| trainer.train_on(&set, &samples).unwrap())
+    });
     g.finish();
 }
 
