@@ -700,7 +700,13 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
             },
         };
         sel.every = args.select_every.max(1);
-        sel.record(held, &trainer, &args.run, init_from.is_none())?;
+        // The first check (the backbone, or the --init-from network) opens a selection; a
+        // resumed one goes on at its next scheduled check, so that a run interrupted after a
+        // checkpoint and resumed makes the same checks, and the same choice, as one that ran
+        // through (an extra check between two scheduled ones can change which network wins).
+        if sel.steps.is_empty() {
+            sel.record(held, &trainer, &args.run, init_from.is_none())?;
+        }
         selection = Some(sel);
     }
     let mut diverged_rollouts = 0;
@@ -916,6 +922,67 @@ pub(crate) fn above_bars(bars: Option<&indicatif::MultiProgress>, print: impl Fn
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_run_resumed_after_an_interruption_makes_the_checks_of_one_that_ran_through() {
+        #[derive(clap::Parser)]
+        struct Cli {
+            #[command(flatten)]
+            train: TrainArgs,
+        }
+        let dir = std::env::temp_dir().join(format!("pgrd-resume-sel-{}", std::process::id()));
+        std::fs::remove_dir_all(&dir).ok();
+        let fit = crate::cmd_fit::FitArgs::quick_rope_fixture(dir.join("through"));
+        crate::cmd_fit::run(&fit).unwrap();
+        std::fs::create_dir_all(dir.join("resumed")).unwrap();
+        std::fs::copy(
+            dir.join("through/backbone.json"),
+            dir.join("resumed/backbone.json"),
+        )
+        .unwrap();
+        let train = |run_dir: &Path, iterations: &str| {
+            let argv = [
+                "train",
+                "--data",
+                crate::cmd_fit::FIXTURE_ROPE,
+                "--run",
+                run_dir.to_str().unwrap(),
+                "--iterations",
+                iterations,
+                "--holdout",
+                "1",
+                "--select-every",
+                "2",
+                "--checkpoint-every",
+                "1",
+                // A flat schedule, so that a 3-step and a 4-step run take the same first steps.
+                "--lr-min",
+                "0.001",
+                "--quiet",
+            ];
+            run(&<Cli as clap::Parser>::try_parse_from(argv).unwrap().train).unwrap();
+            let text = std::fs::read_to_string(run_dir.join("train.json")).unwrap();
+            serde_json::from_str::<serde_json::Value>(&text).unwrap()
+        };
+        let through = train(&dir.join("through"), "4");
+        assert_eq!(through["selection"]["steps"], serde_json::json!([0, 2, 4]));
+        // Three steps, then the state a kill right after step 3's checkpoint leaves: the
+        // checkpoint at 3, the selection's checks up to step 2 (the end-of-run check at 3 that
+        // a finished run makes is taken out again).
+        let resumed_dir = dir.join("resumed");
+        let mut report = train(&resumed_dir, "3");
+        for key in ["steps", "mde_cm"] {
+            report["selection"][key].as_array_mut().unwrap().pop();
+        }
+        std::fs::write(resumed_dir.join("train.json"), report.to_string()).unwrap();
+        let resumed = train(&resumed_dir, "4");
+        assert_eq!(resumed["selection"]["steps"], through["selection"]["steps"]);
+        assert_eq!(
+            resumed["selection"]["mde_cm"],
+            through["selection"]["mde_cm"]
+        );
+        std::fs::remove_dir_all(&dir).ok();
+    }
 
     #[test]
     fn select_on_val_chooses_on_a_development_copys_val_and_nowhere_else() {
