@@ -923,13 +923,18 @@ pub(crate) fn above_bars(bars: Option<&indicatif::MultiProgress>, print: impl Fn
 mod tests {
     use super::*;
 
-    #[test]
-    fn a_run_resumed_after_an_interruption_makes_the_checks_of_one_that_ran_through() {
+    /// `train`'s arguments parsed from `argv` (its first entry the command's name).
+    fn parse_train(argv: &[&str]) -> TrainArgs {
         #[derive(clap::Parser)]
         struct Cli {
             #[command(flatten)]
             train: TrainArgs,
         }
+        <Cli as clap::Parser>::try_parse_from(argv).unwrap().train
+    }
+
+    #[test]
+    fn a_run_resumed_after_an_interruption_makes_the_checks_of_one_that_ran_through() {
         let dir = std::env::temp_dir().join(format!("pgrd-resume-sel-{}", std::process::id()));
         std::fs::remove_dir_all(&dir).ok();
         let fit = crate::cmd_fit::FitArgs::quick_rope_fixture(dir.join("through"));
@@ -960,7 +965,7 @@ mod tests {
                 "0.001",
                 "--quiet",
             ];
-            run(&<Cli as clap::Parser>::try_parse_from(argv).unwrap().train).unwrap();
+            run(&parse_train(&argv)).unwrap();
             let text = std::fs::read_to_string(run_dir.join("train.json")).unwrap();
             serde_json::from_str::<serde_json::Value>(&text).unwrap()
         };
@@ -986,11 +991,6 @@ mod tests {
 
     #[test]
     fn select_on_val_chooses_on_a_development_copys_val_and_nowhere_else() {
-        #[derive(clap::Parser)]
-        struct Cli {
-            #[command(flatten)]
-            train: TrainArgs,
-        }
         let dir = std::env::temp_dir().join(format!("pgrd-select-on-val-{}", std::process::id()));
         std::fs::remove_dir_all(&dir).ok();
         let fit = crate::cmd_fit::FitArgs::quick_rope_fixture(dir.join("run"));
@@ -1014,7 +1014,7 @@ mod tests {
                 "--quiet",
             ];
             argv.extend_from_slice(extra);
-            let args = <Cli as clap::Parser>::try_parse_from(argv).unwrap().train;
+            let args = parse_train(&argv);
             run(&args)
         };
         train(&dir.join("sel"), &["--select-on-val"]).unwrap();
@@ -1038,17 +1038,12 @@ mod tests {
 
     #[test]
     fn an_ensembles_run_is_not_trained_over() {
-        #[derive(clap::Parser)]
-        struct Cli {
-            #[command(flatten)]
-            train: TrainArgs,
-        }
         let dir = std::env::temp_dir().join(format!("pgrd-train-ens-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         std::fs::write(dir.join(crate::cmd_ensemble::RECORD), "{}").unwrap();
         let run_dir = dir.to_str().unwrap();
         let argv = ["train", "--data", "no-such-data", "--run", run_dir];
-        let args = <Cli as clap::Parser>::try_parse_from(argv).unwrap().train;
+        let args = parse_train(&argv);
         let err = run(&args).unwrap_err().to_string();
         assert!(err.contains("holds an ensemble"), "{err}");
         std::fs::remove_dir_all(&dir).unwrap();
@@ -1056,15 +1051,10 @@ mod tests {
 
     #[test]
     fn size_flags_reach_the_network_and_bad_sizes_are_refused_before_any_data() {
-        #[derive(clap::Parser)]
-        struct Cli {
-            #[command(flatten)]
-            train: TrainArgs,
-        }
         let parse = |extra: &[&str]| {
             let mut argv = vec!["train", "--data", "no-such-data", "--run", "no-such-run"];
             argv.extend_from_slice(extra);
-            <Cli as clap::Parser>::try_parse_from(argv).unwrap().train
+            parse_train(&argv)
         };
         assert_eq!(model_config(&parse(&[])), ModelConfig::default());
         let wide = model_config(&parse(&[
