@@ -498,10 +498,10 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
          train into a new run directory",
         args.run.display()
     );
-    // Sizes from the command line are checked before any data are read.
-    model_config(args).validate().context(
-        "the network's sizes (--enc-channels, --enc-depths, --dec-channels, --dec-depths)",
-    )?;
+    // The network's flags (sizes, bound) are checked before any data are read.
+    model_config(args)
+        .validate()
+        .context("the network's configuration from the flags")?;
     match (
         args.residual_scale.len(),
         args.start_from.len(),
@@ -1078,7 +1078,8 @@ mod tests {
             &["--enc-channels", "16,32,60"][..],
         ] {
             let err = format!("{:#}", run(&parse(bad)).unwrap_err());
-            assert!(err.contains("--enc-channels"), "{err}");
+            assert!(err.contains("configuration from the flags"), "{err}");
+            assert!(err.contains("channel"), "{err}");
             assert!(!err.contains("no-such-data"), "{err}");
         }
     }
