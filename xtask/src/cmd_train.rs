@@ -385,25 +385,25 @@ struct TrainReport {
     init_from: Option<String>,
 }
 
+/// Blocks per stage: as given, else one per stage of the channels given, else the default's.
+fn depths(
+    given: &Option<Vec<usize>>,
+    channels: &Option<Vec<usize>>,
+    default: Vec<usize>,
+) -> Vec<usize> {
+    given
+        .clone()
+        .or_else(|| channels.as_ref().map(|c| vec![1; c.len()]))
+        .unwrap_or(default)
+}
+
 fn model_config(args: &TrainArgs) -> ModelConfig {
     let sizes = ModelConfig::default();
     ModelConfig {
         enc_channels: args.enc_channels.clone().unwrap_or(sizes.enc_channels),
-        enc_depths: args
-            .enc_depths
-            .clone()
-            .unwrap_or_else(|| match &args.enc_channels {
-                Some(channels) => vec![1; channels.len()],
-                None => sizes.enc_depths,
-            }),
+        enc_depths: depths(&args.enc_depths, &args.enc_channels, sizes.enc_depths),
         dec_channels: args.dec_channels.clone().unwrap_or(sizes.dec_channels),
-        dec_depths: args
-            .dec_depths
-            .clone()
-            .unwrap_or_else(|| match &args.dec_channels {
-                Some(channels) => vec![1; channels.len()],
-                None => sizes.dec_depths,
-            }),
+        dec_depths: depths(&args.dec_depths, &args.dec_channels, sizes.dec_depths),
         encoder: match args.encoder {
             EncoderArg::Ptv3 => EncoderKind::Ptv3,
             EncoderArg::Pointnet => EncoderKind::Pointnet,
