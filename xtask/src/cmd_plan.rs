@@ -73,9 +73,15 @@ pub struct PlanArgs {
     /// GIF of the first trial (default: the JSON path with `_<model>.gif`, one per model).
     #[arg(long)]
     pub gif: Option<PathBuf>,
-    /// Planner seed of the first trial (trial k uses seed + k).
+    /// Planner seed of trial 0 (trial k uses seed + k).
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// Index of the first trial: runs trials first-trial … first-trial + trials − 1, each with
+    /// its own start and target (rerouting) and seed, so `--first-trial 3 --trials 1` repeats
+    /// exactly the fourth trial of a `--trials 10` run and trials can be split across
+    /// processes or machines.
+    #[arg(long, default_value_t = 0)]
+    pub first_trial: usize,
     /// Tracked rope points = model particles (default: the particle count of the run's
     /// dataset, else 150).
     #[arg(long)]
@@ -237,26 +243,14 @@ pub fn run(args: &PlanArgs) -> anyhow::Result<()> {
         },
         ..TaskConfig::new()
     };
-    let tasks: Vec<Task> = (0..args.trials)
-        .map(|t| {
-            cfg.trial = if kind == TaskKind::Reroute {
-                t as u64
-            } else {
-                0
-            };
-            let mut task =
-                Task::build(kind, &cfg).with_context(|| format!("building {kind} trial {t}"))?;
-            task.stop_at_success = !args.full_length;
-            Ok(task)
-        })
-        .collect::<anyhow::Result<_>>()?;
+    let trial_seeds = trial_seeds(args.first_trial, args.trials, args.seed);
+    let tasks = build_tasks(kind, &mut cfg, &trial_seeds, !args.full_length)?;
     let mut reports = Vec::new();
     for &m in &models {
         let t0 = Instant::now();
         let mut trials = Vec::new();
         let mut trajectories = Vec::new();
-        for (t, task) in tasks.iter().enumerate() {
-            let seed = args.seed + t as u64;
+        for (&(t, seed), task) in trial_seeds.iter().zip(&tasks) {
             let (mut report, traj) = if m == ModelArg::World {
                 let oracle = WorldOracle::new(task.start.clone());
                 run_trial(
@@ -428,6 +422,7 @@ pub fn run(args: &PlanArgs) -> anyhow::Result<()> {
             "params": backbone.params,
             "tracked": tracked,
             "trials": args.trials,
+            "first_trial": args.first_trial,
             "max_steps": args.max_steps.unwrap_or(task0.max_steps),
             "stop_at_success": task0.stop_at_success,
             "mppi": mppi,
@@ -688,6 +683,37 @@ fn with_suffix(path: &Path, suffix: &str, ext: &str) -> PathBuf {
 }
 
 /// Writes an animated GIF of a trajectory (top, side and front views; the target in blue).
+/// (trial index, planner seed) of each trial a run plans: trial k plans with `seed + k`.
+fn trial_seeds(first_trial: usize, trials: usize, seed: u64) -> Vec<(usize, u64)> {
+    (first_trial..first_trial + trials)
+        .map(|k| (k, seed + k as u64))
+        .collect()
+}
+
+/// The task of each trial: rerouting draws trial k's start and target from k; the simple tasks
+/// use one start and target for every trial (as in the paper).
+fn build_tasks(
+    kind: TaskKind,
+    cfg: &mut TaskConfig,
+    trial_seeds: &[(usize, u64)],
+    stop_at_success: bool,
+) -> anyhow::Result<Vec<Task>> {
+    trial_seeds
+        .iter()
+        .map(|&(t, _)| {
+            cfg.trial = if kind == TaskKind::Reroute {
+                t as u64
+            } else {
+                0
+            };
+            let mut task =
+                Task::build(kind, cfg).with_context(|| format!("building {kind} trial {t}"))?;
+            task.stop_at_success = stop_at_success;
+            Ok(task)
+        })
+        .collect()
+}
+
 fn write_gif(path: &Path, task: &Task, traj: &Trajectory) -> anyhow::Result<()> {
     let obstacles = task.obstacles()?;
     let frames: Vec<Frame<'_>> = traj
@@ -733,6 +759,7 @@ mod tests {
             plot: None,
             gif: None,
             seed: 0,
+            first_trial: 0,
             tracked: None,
             resolution: ResolutionArg::Coarse,
             max_steps: None,
@@ -762,6 +789,26 @@ mod tests {
             traj.grippers.push(vec![world.gripper()]);
         }
         traj
+    }
+
+    #[test]
+    fn a_trial_run_on_its_own_is_the_same_trial_as_in_a_longer_run() {
+        let run = trial_seeds(0, 4, 7);
+        let alone = trial_seeds(3, 1, 7);
+        assert_eq!(alone, vec![(3, 10)]);
+        assert_eq!(alone[..], run[3..]);
+        let mut cfg = TaskConfig {
+            tracked: 30,
+            ..TaskConfig::new()
+        };
+        let long = build_tasks(TaskKind::Reroute, &mut cfg, &run, true).unwrap();
+        let single = build_tasks(TaskKind::Reroute, &mut cfg, &alone, true).unwrap();
+        assert_eq!(single[0].target, long[3].target);
+        assert_eq!(single[0].start.observe(), long[3].start.observe());
+        // Rerouting's trials differ from one another, so the trial's index chose its geometry,
+        // not its place in the run.
+        assert_ne!(single[0].target, long[0].target);
+        assert!(single[0].stop_at_success);
     }
 
     #[test]
