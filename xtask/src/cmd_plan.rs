@@ -168,6 +168,12 @@ pub fn run(args: &PlanArgs) -> anyhow::Result<()> {
     let kind: TaskKind = args.task.parse()?;
     anyhow::ensure!(args.trials >= 1, "--trials must be at least 1");
     anyhow::ensure!(
+        args.first_trial.checked_add(args.trials).is_some(),
+        "--first-trial {} plus --trials {} is past the last trial index",
+        args.first_trial,
+        args.trials
+    );
+    anyhow::ensure!(
         args.record.is_none() || kind != TaskKind::Reroute,
         "--record cannot record rerouting: the dataset format has no obstacles, so a model \
          trained on its paths would never see the slot"
@@ -682,11 +688,11 @@ fn with_suffix(path: &Path, suffix: &str, ext: &str) -> PathBuf {
     path.with_file_name(format!("{stem}{suffix}.{ext}"))
 }
 
-/// Writes an animated GIF of a trajectory (top, side and front views; the target in blue).
-/// (trial index, planner seed) of each trial a run plans: trial k plans with `seed + k`.
+/// (trial index, planner seed) of each trial a run plans: trial k plans with `seed + k`
+/// (wrapping, so any seed is valid).
 fn trial_seeds(first_trial: usize, trials: usize, seed: u64) -> Vec<(usize, u64)> {
-    (first_trial..first_trial + trials)
-        .map(|k| (k, seed + k as u64))
+    (first_trial..first_trial.saturating_add(trials))
+        .map(|k| (k, seed.wrapping_add(k as u64)))
         .collect()
 }
 
@@ -714,6 +720,7 @@ fn build_tasks(
         .collect()
 }
 
+/// Writes an animated GIF of a trajectory (top, side and front views; the target in blue).
 fn write_gif(path: &Path, task: &Task, traj: &Trajectory) -> anyhow::Result<()> {
     let obstacles = task.obstacles()?;
     let frames: Vec<Frame<'_>> = traj
