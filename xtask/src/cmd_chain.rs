@@ -324,6 +324,7 @@ fn test_scores(
             plot: Some(out.join(format!("eval_test_{name}.svg"))),
             no_emd: false,
             visual: false,
+            horizon: None,
         })?;
         report.metrics["mde_cm"]["mean"]
             .as_f64()

@@ -44,6 +44,13 @@ pub struct EvalArgs {
     /// against the dataset's ground-truth Gaussians (reference-world data only).
     #[arg(long)]
     pub visual: bool,
+    /// Score K-step predictions started from every recorded frame of each episode's window
+    /// (state and history read from the recording), the way a planner uses the model,
+    /// instead of one rollout over the window; the per-step curve is over the K steps and
+    /// each episode's score the mean over its starts. Written to `eval_h<K>_<split>.json`
+    /// (`eval_pgrd_h<K>_<split>.json`) by default.
+    #[arg(long, value_name = "K")]
+    pub horizon: Option<usize>,
 }
 
 /// A metric's summary in cm.
@@ -94,8 +101,12 @@ pub struct EvalReport {
     pub protocol: String,
     /// Episodes evaluated.
     pub episodes: usize,
-    /// Steps per rollout.
+    /// Steps per rollout (with `--horizon`, K).
     pub steps: usize,
+    /// With `--horizon K`: K. Each episode's score is then the mean over its K-step
+    /// predictions started from every frame of the window that leaves K frames after it.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub horizon: Option<usize>,
     /// Summaries (cm; `deform_l1_m` in m).
     pub metrics: serde_json::Value,
     /// Per-step means over episodes, cm.
@@ -124,26 +135,41 @@ fn summary(curves: &[Vec<f64>], convention: &'static str) -> anyhow::Result<(Sum
 
 /// File name (without extension) of an evaluation's default outputs: the backbone's keep the
 /// historical `eval_<split>`, PGRD's get the model name so one run directory holds both.
-fn stem(model_name: &str, split: Split) -> String {
+fn stem(model_name: &str, split: Split, horizon: Option<usize>) -> String {
+    let h = horizon.map(|k| format!("h{k}_")).unwrap_or_default();
     if model_name == "pgrd" {
-        format!("eval_pgrd_{split}")
+        format!("eval_pgrd_{h}{split}")
     } else {
-        format!("eval_{split}")
+        format!("eval_{h}{split}")
     }
 }
 
 /// Evaluates the run's model and writes the JSON report and the plot.
 pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
     let t0 = Instant::now();
+    anyhow::ensure!(
+        !(args.visual && args.horizon.is_some()),
+        "--visual scores the video of one rollout over the window; --horizon scores many short \
+         predictions, which make no video"
+    );
     let data = Dataset::open(&args.data)?;
     let backbone = read_backbone(&args.run)?;
     let protocol: Protocol = args.protocol.into();
-    let scenes = load_scenes(
-        &data,
-        args.split,
-        protocol,
-        &backbone.substep.scene_config(&data)?,
-    )?;
+    let scene_config = backbone.substep.scene_config(&data)?;
+    let scenes = load_scenes(&data, args.split, protocol, &scene_config)?;
+    if let Some(k) = args.horizon {
+        let shortest = scenes
+            .iter()
+            .map(|(_, s)| s.window.steps)
+            .min()
+            .unwrap_or(0);
+        anyhow::ensure!(
+            (1..=shortest).contains(&k),
+            "--horizon {k}: must be between 1 and the shortest window's {shortest} steps"
+        );
+    }
+    // Many short predictions per episode: exact EMD on each would cost more than the rest.
+    let with_emd = !args.no_emd && args.horizon.is_none();
     let net = read_residual(&args.run)?;
     let model_name = if net.is_some() {
         "pgrd".to_string()
@@ -177,6 +203,23 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
         .par_iter()
         .zip(&histories)
         .map(|((i, scene), history)| {
+            if let Some(k) = args.horizon {
+                let predictor = crate::eval_horizon::Predictor {
+                    params: &backbone.params,
+                    options: &options,
+                    net: net.as_ref(),
+                };
+                let (errors, l1) = crate::eval_horizon::horizon_errors(
+                    &data,
+                    &data.load_episode(*i)?,
+                    scene,
+                    &scene_config,
+                    k,
+                    &predictor,
+                )
+                .with_context(|| format!("episode {i}"))?;
+                return Ok((errors, l1, (*i, scene, Vec::new())));
+            }
             let pred = predict_tracked(
                 scene,
                 &backbone.params,
@@ -185,7 +228,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
                 history.as_ref(),
             )
             .with_context(|| format!("episode {i}"))?;
-            let errors = scene::score_steps(scene, &pred, !args.no_emd)?;
+            let errors = scene::score_steps(scene, &pred, with_emd)?;
             let l1 = scene::deform_l1(scene, &pred)?;
             // The predictions are kept only for the video metrics.
             let kept = if args.visual { pred } else { Vec::new() };
@@ -206,8 +249,10 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
     }
     if per_episode.is_empty() {
         let json = args.json.clone().unwrap_or_else(|| {
-            args.run
-                .join(format!("{}.json", stem(&model_name, args.split)))
+            args.run.join(format!(
+                "{}.json",
+                stem(&model_name, args.split, args.horizon)
+            ))
         });
         write_json(
             &json,
@@ -267,7 +312,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
         },
     ];
     let emd_steps;
-    if !args.no_emd {
+    if with_emd {
         let (emd, steps) = summary(
             &curve(|e| e.emd),
             "exact EMD, mean matched Euclidean distance",
@@ -297,8 +342,10 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
     }
     let split = args.split.to_string();
     let plot = args.plot.clone().unwrap_or_else(|| {
-        args.run
-            .join(format!("{}.svg", stem(&model_name, args.split)))
+        args.run.join(format!(
+            "{}.svg",
+            stem(&model_name, args.split, args.horizon)
+        ))
     });
     plot_curves(
         &plot,
@@ -321,7 +368,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
             episode: *i,
             mde_cm: mean_cm(e, |s| s.mde),
             chamfer_cm: mean_cm(e, StepErrors::chamfer_two_sided),
-            emd_cm: (!args.no_emd).then(|| mean_cm(e, |s| s.emd)),
+            emd_cm: with_emd.then(|| mean_cm(e, |s| s.emd)),
         })
         .collect();
     let report = EvalReport {
@@ -334,6 +381,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
         protocol: protocol.name().into(),
         episodes: per_episode.len(),
         steps: mde_steps.len(),
+        horizon: args.horizon,
         metrics,
         per_step_cm: per_step,
         per_episode: episode_scores,
@@ -342,8 +390,10 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
         wall_s: t0.elapsed().as_secs_f64(),
     };
     let json = args.json.clone().unwrap_or_else(|| {
-        args.run
-            .join(format!("{}.json", stem(&model_name, args.split)))
+        args.run.join(format!(
+            "{}.json",
+            stem(&model_name, args.split, args.horizon)
+        ))
     });
     write_json(&json, &report)?;
     let m = &report.metrics;

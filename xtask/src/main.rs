@@ -23,6 +23,7 @@ mod cmd_refine;
 mod cmd_render;
 mod cmd_train;
 mod common;
+mod eval_horizon;
 mod report;
 mod train_choice;
 mod train_resume;
