@@ -180,8 +180,9 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
     if let Some((_, scene)) = scenes.first() {
         warn_if_unconnected(scene, &backbone.params, options())?;
     }
+    // With --horizon every start reads its own history (eval_horizon).
     let histories = match &net {
-        Some(_) => scenes
+        Some(_) if args.horizon.is_none() => scenes
             .iter()
             .map(|(i, scene)| {
                 Ok(Some(residual::History::from_episode(
@@ -191,7 +192,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
                 )?))
             })
             .collect::<anyhow::Result<Vec<_>>>()?,
-        None => vec![None; scenes.len()],
+        _ => vec![None; scenes.len()],
     };
     let t_roll = Instant::now();
     type Scored<'a> = (
