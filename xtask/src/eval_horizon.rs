@@ -23,9 +23,9 @@ pub struct Predictor<'a> {
 /// Every start reads its state and the network's history from the recording as the scene
 /// reads its own start ([`Scene::new`], [`residual::History::from_episode`]). The springs are
 /// the episode's: the backbone built at the window's first frame, as in the full-window
-/// evaluation and in training, so only the starting state moves; a volume whose interior fill
-/// differs at a start (another particle count) gets that start's own backbone, as training
-/// does.
+/// evaluation and in training, so only the starting state moves; a start whose particles are
+/// not the window's (a filled volume's interior, filled afresh at every start) gets its own
+/// backbone, as in training.
 pub fn horizon_errors(
     data: &Dataset,
     episode: &Episode,
@@ -65,9 +65,11 @@ pub fn horizon_errors(
         )
         .with_context(|| format!("the {horizon}-step window from frame {start}"))?;
         let own;
-        let bb = if at.particles() == base.num_particles()
-            && data.meta.structure != dataset::Structure::Volume
-        {
+        // A volume's interior is filled afresh at every start: other material points than the
+        // window's, even where as many, so they get their own springs (as in training).
+        let fresh_interior =
+            data.meta.structure == dataset::Structure::Volume && at.particles() > at.tracked;
+        let bb = if at.particles() == base.num_particles() && !fresh_interior {
             &base
         } else {
             own = at.backbone(model.params, &sim, (model.options)())?;
