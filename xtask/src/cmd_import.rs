@@ -1,4 +1,5 @@
-//! `cargo xtask import deform <DIR> --out <DATASET>` and `cargo xtask dev-split`.
+//! `cargo xtask import deform <DIR> --out <DATASET>`, `cargo xtask dev-split` and
+//! `cargo xtask merge`.
 
 use std::path::PathBuf;
 
@@ -98,4 +99,110 @@ pub fn dev_split(args: &DevSplitArgs) -> anyhow::Result<()> {
         args.out.display()
     );
     Ok(())
+}
+
+/// Arguments of `merge`.
+#[derive(clap::Args)]
+pub struct MergeArgs {
+    /// New dataset directory (must not exist, or be empty).
+    #[arg(long)]
+    out: PathBuf,
+    /// `DIR:SPLIT` or `DIR:SPLIT=AS`: the `SPLIT` episodes of the dataset in `DIR`, listed as
+    /// `AS` (default `SPLIT`). Repeat it; the merged dataset lists the parts in the order
+    /// given, so the part to hold out with `train --holdout` goes last among the training
+    /// ones. Every part must be the same object recorded the same way.
+    #[arg(long = "part", required = true, value_parser = parse_part)]
+    parts: Vec<PartArg>,
+}
+
+#[derive(Clone, Debug)]
+struct PartArg {
+    dir: PathBuf,
+    split: dataset::Split,
+    as_split: dataset::Split,
+}
+
+fn parse_part(s: &str) -> Result<PartArg, String> {
+    let (dir, splits) = s
+        .rsplit_once(':')
+        .ok_or_else(|| format!("`{s}`: expected DIR:SPLIT or DIR:SPLIT=AS"))?;
+    let (split, as_split) = splits.split_once('=').unwrap_or((splits, splits));
+    if dir.is_empty() {
+        return Err(format!("`{s}`: the dataset directory is missing"));
+    }
+    Ok(PartArg {
+        dir: dir.into(),
+        split: split.parse()?,
+        as_split: as_split.parse()?,
+    })
+}
+
+/// Writes the merged dataset and prints what came from where.
+pub fn merge(args: &MergeArgs) -> anyhow::Result<()> {
+    let mut opened: Vec<(PathBuf, dataset::Dataset)> = Vec::new();
+    for p in &args.parts {
+        if !opened.iter().any(|(d, _)| *d == p.dir) {
+            let data = dataset::Dataset::open(&p.dir)
+                .with_context(|| format!("opening {}", p.dir.display()))?;
+            opened.push((p.dir.clone(), data));
+        }
+    }
+    let find = |dir: &PathBuf| {
+        &opened
+            .iter()
+            .find(|(d, _)| d == dir)
+            .expect("opened above")
+            .1
+    };
+    let parts: Vec<dataset::MergePart<'_>> = (args.parts.iter())
+        .map(|p| dataset::MergePart {
+            data: find(&p.dir),
+            split: p.split,
+            as_split: p.as_split,
+        })
+        .collect();
+    let report = dataset::merge(&parts, &args.out)
+        .with_context(|| format!("merging into {}", args.out.display()))?;
+    for (p, n) in args.parts.iter().zip(&report.per_part) {
+        println!(
+            "{n:4} {} episodes of {} as {}",
+            p.split,
+            p.dir.display(),
+            p.as_split
+        );
+    }
+    let [train, val, test] = report.counts;
+    println!(
+        "-> {}: {train} train, {val} val, {test} test",
+        args.out.display()
+    );
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::parse_part;
+    use dataset::Split;
+
+    #[test]
+    fn parts_name_a_directory_a_split_and_optionally_a_new_split() {
+        let p = parse_part("data/rope:train").unwrap();
+        assert_eq!(
+            (p.dir.to_str(), p.split, p.as_split),
+            (Some("data/rope"), Split::Train, Split::Train)
+        );
+        let p = parse_part("a:b/rope:test=val").unwrap();
+        assert_eq!(
+            (p.dir.to_str(), p.split, p.as_split),
+            (Some("a:b/rope"), Split::Test, Split::Val)
+        );
+        for bad in [
+            "data/rope",
+            "data/rope:training",
+            ":train",
+            "data/rope:train=dev",
+        ] {
+            assert!(parse_part(bad).is_err(), "{bad}");
+        }
+    }
 }

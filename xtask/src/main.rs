@@ -76,6 +76,8 @@ enum Command {
     /// Copy a dataset with its last training episodes as `val` and its `val` as `test`: choose
     /// models on training recordings, score them once on the rest.
     DevSplit(cmd_import::DevSplitArgs),
+    /// Merge chosen splits of several datasets of one object into a new dataset, in order.
+    Merge(cmd_import::MergeArgs),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -93,6 +95,7 @@ fn main() -> anyhow::Result<()> {
         Command::Compare(args) => cmd_compare::run(&args),
         Command::Import(args) => cmd_import::run(&args),
         Command::DevSplit(args) => cmd_import::dev_split(&args),
+        Command::Merge(args) => cmd_import::merge(&args),
         Command::Metrics(args) => cmd_metrics::run(&args),
         Command::Plan(args) => cmd_plan::run(&args),
         Command::Render(args) => cmd_render::run(&args),

@@ -13,6 +13,8 @@
 //!   `test`, so models can be chosen on training recordings and scored once on the rest;
 //!   [`select_split`] keeps the last `val` recordings as `val` (a selection set) and moves the
 //!   others to `test`, for data where more recordings can be had.
+//! - [`merge`] writes the episodes of chosen splits of several datasets of one object as one
+//!   new dataset, in the order given (e.g. two kinds of motion to train on), with provenance.
 //! - [`carried_frame`] reads a frame with each occluded point carried from its last sighting
 //!   (a tracker's stored position for a lost point is stale); [`MaterialNeighbours`] places the
 //!   points not seen at all yet, from the neighbours they keep across the training recordings.
@@ -40,6 +42,7 @@ mod dev_split;
 mod episode;
 mod error;
 pub mod import;
+mod merge;
 mod meta;
 mod neighbours;
 mod occlusion;
@@ -48,6 +51,7 @@ pub use atomic::write_atomic;
 pub use dev_split::{DevSplitReport, dev_split, dev_split_meta, select_split, select_split_meta};
 pub use episode::Episode;
 pub use error::Error;
+pub use merge::{MERGE_FILE, MergePart, MergeReport, merge};
 pub use meta::{
     Dataset, DatasetMeta, DatasetWriter, EpisodeEntry, FORMAT_VERSION, Manipulation, Split,
     Structure,
