@@ -91,6 +91,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
             protocol: ProtocolArg::Paper,
             bounds: BoundsArg::Reference,
             substep: SubstepArg::Auto,
+            material_springs: false,
             quiet: true,
         })?;
         let report = cmd_eval::run(&EvalArgs {

@@ -11,8 +11,8 @@ use gap::{BaseEffect, Candidate, DiagnoseConfig, Diagnosis};
 use scene::{Protocol, Scene};
 
 use crate::common::{
-    BackboneFile, ProtocolArg, SubstepArg, backbone_path, load_scenes, predict_tracked,
-    read_backbone, read_residual, scenes,
+    BackboneFile, ProtocolArg, SceneSetting, SubstepArg, backbone_path, load_scenes,
+    predict_tracked, read_backbone, read_residual, scenes,
 };
 use crate::report::write_json;
 
@@ -303,7 +303,7 @@ pub(crate) fn network_errors(
         data,
         Split::Val,
         protocol,
-        &backbone.substep.scene_config(data)?,
+        &backbone.setting().scene_config(data)?,
     )?;
     let mde = |scene: &Scene, pred: &[Vec<glam::Vec3>]| -> anyhow::Result<f64> {
         let e = scene::score_steps(scene, pred, false)?;
@@ -554,8 +554,12 @@ fn setup(args: &DiagnoseArgs) -> anyhow::Result<Setup> {
     let backbone = read_backbone(&args.run)?;
     let protocol: Protocol = args.protocol.into();
     let substep = args.substep.unwrap_or(backbone.substep);
-    let train = scenes(&data, Split::Train, protocol, substep)?;
-    let val = scenes(&data, Split::Val, protocol, substep)?;
+    let setting = |substep| SceneSetting {
+        substep,
+        ..backbone.setting()
+    };
+    let train = scenes(&data, Split::Train, protocol, setting(substep))?;
+    let val = scenes(&data, Split::Val, protocol, setting(substep))?;
     let mut config = config_from(args, &backbone.effects)?;
     // A refined stiffness field stays at its values in every model; the refits move the
     // global stiffness it multiplies.
@@ -676,8 +680,12 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
         };
         if chosen.substep != substep {
             substep = chosen.substep;
-            train = scenes(&data, Split::Train, protocol, substep)?;
-            val = scenes(&data, Split::Val, protocol, substep)?;
+            let setting = SceneSetting {
+                substep,
+                ..backbone.setting()
+            };
+            train = scenes(&data, Split::Train, protocol, setting)?;
+            val = scenes(&data, Split::Val, protocol, setting)?;
         }
     }
     if !quiet {

@@ -620,6 +620,7 @@ fn base_model(
         effects: base.clone(),
         refined: None,
         substep: args.substep,
+        material_springs: false,
     };
     Ok((m, base, file))
 }

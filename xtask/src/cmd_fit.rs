@@ -9,7 +9,7 @@ use fit::{BackboneFamily, FitConfig};
 use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::common::{
-    BackboneFile, ProtocolArg, SubstepArg, backbone_path, scenes, warn_if_unconnected,
+    BackboneFile, ProtocolArg, SceneSetting, SubstepArg, backbone_path, scenes, warn_if_unconnected,
 };
 use crate::report::write_json;
 
@@ -53,6 +53,12 @@ pub struct FitArgs {
     /// and `diagnose` use the run's.
     #[arg(long, value_enum, default_value_t = SubstepArg::Auto)]
     pub substep: SubstepArg,
+    /// Join only material neighbours by springs: tracked points whose mean distance over the
+    /// training recordings is at most twice the spring radius, not parts that merely touch at
+    /// a window's start frame (docs/pipelines.md, "Material springs"). Recorded in
+    /// backbone.json; every later stage builds the run's model the same way.
+    #[arg(long)]
+    pub material_springs: bool,
     /// Print nothing but the final line.
     #[arg(long)]
     pub quiet: bool,
@@ -89,7 +95,11 @@ impl BoundsArg {
 pub fn run(args: &FitArgs) -> anyhow::Result<BackboneFile> {
     let t0 = Instant::now();
     let data = Dataset::open(&args.data)?;
-    let scenes = scenes(&data, Split::Train, args.protocol.into(), args.substep)?;
+    let setting = SceneSetting {
+        substep: args.substep,
+        material_springs: args.material_springs,
+    };
+    let scenes = scenes(&data, Split::Train, args.protocol.into(), setting)?;
     std::fs::create_dir_all(&args.run)
         .with_context(|| format!("creating {}", args.run.display()))?;
     let family = BackboneFamily::new(args.bounds.bounds())?;
@@ -169,6 +179,7 @@ pub fn run(args: &FitArgs) -> anyhow::Result<BackboneFile> {
         effects: Vec::new(),
         refined: None,
         substep: args.substep,
+        material_springs: args.material_springs,
     };
     write_json(&backbone_path(&args.run), &file)?;
     println!(
@@ -208,6 +219,7 @@ impl FitArgs {
             protocol: ProtocolArg::Paper,
             bounds: BoundsArg::Reference,
             substep: SubstepArg::Auto,
+            material_springs: false,
             quiet: true,
         }
     }
@@ -238,6 +250,47 @@ mod tests {
         assert_eq!(old.substep, SubstepArg::Auto);
         // ... and writes no key, so older readers still parse it.
         assert!(!serde_json::to_string(&old).unwrap().contains("substep"));
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
+    #[test]
+    fn the_run_records_material_springs_and_older_runs_read_as_reference_springs() {
+        let dir = std::env::temp_dir().join(format!("pgrd-fit-material-{}", std::process::id()));
+        let args = FitArgs {
+            material_springs: true,
+            ..FitArgs::quick_rope_fixture(dir.clone())
+        };
+        run(&args).unwrap();
+        let path = backbone_path(&dir);
+        let text = std::fs::read_to_string(&path).unwrap();
+        assert!(text.contains(r#""material_springs": true"#), "{text}");
+        let setting = read_backbone(&dir).unwrap().setting();
+        assert!(setting.material_springs);
+        let data = Dataset::open(FIXTURE_ROPE).unwrap();
+        assert!(
+            setting
+                .scene_config(&data)
+                .unwrap()
+                .material_pairs
+                .is_some()
+        );
+        let mut json: serde_json::Value = serde_json::from_str(&text).unwrap();
+        json.as_object_mut().unwrap().remove("material_springs");
+        std::fs::write(&path, serde_json::to_string(&json).unwrap()).unwrap();
+        let old = read_backbone(&dir).unwrap();
+        assert!(!old.material_springs);
+        assert!(
+            old.setting()
+                .scene_config(&data)
+                .unwrap()
+                .material_pairs
+                .is_none()
+        );
+        assert!(
+            !serde_json::to_string(&old)
+                .unwrap()
+                .contains("material_springs")
+        );
         std::fs::remove_dir_all(&dir).ok();
     }
 

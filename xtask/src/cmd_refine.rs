@@ -74,7 +74,7 @@ pub fn run(args: &RefineArgs) -> anyhow::Result<()> {
         args.out != args.run,
         "--out must be a new run directory, not the fitted run"
     );
-    let scenes = scenes(&data, Split::Train, args.protocol.into(), file.substep)?;
+    let scenes = scenes(&data, Split::Train, args.protocol.into(), file.setting())?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
     let config = fit::RefineConfig {

@@ -416,7 +416,7 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
         &data.meta,
         &episode,
         window,
-        &backbone.substep.scene_config(&data)?,
+        &backbone.setting().scene_config(&data)?,
     )
     .with_context(|| format!("episode {index}"))?;
     let net = read_residual(&args.run)?;

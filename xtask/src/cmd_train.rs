@@ -540,7 +540,7 @@ fn selection_set(
         data,
         Split::Val,
         &backbone.params,
-        &backbone.substep.scene_config(data)?,
+        &backbone.setting().scene_config(data)?,
         protocol,
         options,
     )
@@ -564,7 +564,7 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
         &data,
         Split::Train,
         &backbone.params,
-        &backbone.substep.scene_config(&data)?,
+        &backbone.setting().scene_config(&data)?,
         args.protocol.into(),
         options,
     )

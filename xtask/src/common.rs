@@ -42,22 +42,50 @@ pub enum SubstepArg {
     Spectral,
 }
 
-impl SubstepArg {
-    /// The scene settings with this substep, with unseen start points placed by the material
-    /// neighbours learned from `data`'s training split.
+/// How a run's scenes are built: its substep rule, and whether its springs join material
+/// neighbours only (`fit --material-springs`; docs/pipelines.md, "Material springs").
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct SceneSetting {
+    /// The simulator's substep rule.
+    pub substep: SubstepArg,
+    /// Springs only between tracked points that stay close across the training recordings.
+    pub material_springs: bool,
+}
+
+impl From<SubstepArg> for SceneSetting {
+    fn from(substep: SubstepArg) -> Self {
+        SceneSetting {
+            substep,
+            material_springs: false,
+        }
+    }
+}
+
+impl SceneSetting {
+    /// The scene settings: this substep, unseen start points placed by the material
+    /// neighbours learned from `data`'s training split, and with material springs the pair
+    /// table learned from the same split.
     pub fn scene_config(self, data: &Dataset) -> anyhow::Result<SceneConfig> {
         let config = SceneConfig {
-            substep: self.substep(),
+            substep: self.substep.substep(),
             ..SceneConfig::default()
         };
-        config.with_neighbours_of(data).with_context(|| {
+        let config = config.with_neighbours_of(data).with_context(|| {
             format!(
                 "learning the material neighbours of {}",
                 data.root.display()
             )
-        })
+        })?;
+        if !self.material_springs {
+            return Ok(config);
+        }
+        config
+            .with_material_pairs_of(data)
+            .with_context(|| format!("learning the material springs of {}", data.root.display()))
     }
+}
 
+impl SubstepArg {
     /// The simulator's substep rule.
     pub fn substep(self) -> springs::Substep {
         match self {
@@ -104,16 +132,16 @@ pub fn load_scenes(
         .collect()
 }
 
-/// The scenes of a split with the default scene settings and `substep`, without their episode
-/// indices.
+/// The scenes of a split with the default scene settings and `setting` (a [`SubstepArg`] alone
+/// builds the reference's springs), without their episode indices.
 pub fn scenes(
     data: &Dataset,
     split: Split,
     protocol: Protocol,
-    substep: SubstepArg,
+    setting: impl Into<SceneSetting>,
 ) -> anyhow::Result<Vec<Scene>> {
     Ok(
-        load_scenes(data, split, protocol, &substep.scene_config(data)?)?
+        load_scenes(data, split, protocol, &setting.into().scene_config(data)?)?
             .into_iter()
             .map(|(_, s)| s)
             .collect(),
@@ -151,9 +179,22 @@ pub struct BackboneFile {
     /// effects' values are fitted for that integrator, so `eval` and `train` use it too.
     #[serde(default, skip_serializing_if = "SubstepArg::is_auto")]
     pub substep: SubstepArg,
+    /// Springs join material neighbours only (`fit --material-springs`; absent: every pair
+    /// within the radius, the reference's rule); every stage that builds this run's model
+    /// uses the same rule.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub material_springs: bool,
 }
 
 impl BackboneFile {
+    /// How this run's scenes are built (substep rule, material springs).
+    pub fn setting(&self) -> SceneSetting {
+        SceneSetting {
+            substep: self.substep,
+            material_springs: self.material_springs,
+        }
+    }
+
     /// The model's name in reports: `spring-mass`, or `spring-mass+drag+...` with effects;
     /// `diff-spring-mass` for a refined stiffness field.
     pub fn label(&self) -> String {

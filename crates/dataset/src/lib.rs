@@ -17,7 +17,9 @@
 //!   new dataset, in the order given (e.g. two kinds of motion to train on), with provenance.
 //! - [`carried_frame`] reads a frame with each occluded point carried from its last sighting
 //!   (a tracker's stored position for a lost point is stale); [`MaterialNeighbours`] places the
-//!   points not seen at all yet, from the neighbours they keep across the training recordings.
+//!   points not seen at all yet, from the neighbours they keep across the training recordings;
+//!   [`MaterialPairs`] says how far apart two points usually are, so that a model's springs can
+//!   join material neighbours only, not parts that merely touch at the start frame.
 //!
 //! Units: metres, seconds, z up.
 //!
@@ -46,6 +48,7 @@ mod merge;
 mod meta;
 mod neighbours;
 mod occlusion;
+mod pairs;
 
 pub use atomic::write_atomic;
 pub use dev_split::{DevSplitReport, dev_split, dev_split_meta, select_split, select_split_meta};
@@ -58,6 +61,7 @@ pub use meta::{
 };
 pub use neighbours::{MaterialNeighbours, PLACING_NEIGHBOURS};
 pub use occlusion::carried_frame;
+pub use pairs::{MAX_PAIR_POINTS, MaterialPairs};
 
 /// Result alias for this crate.
 pub type Result<T, E = Error> = std::result::Result<T, E>;

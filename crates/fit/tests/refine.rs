@@ -22,6 +22,7 @@ fn dragged() -> BackboneOptions {
     BackboneOptions {
         masses: None,
         effects: vec![Box::new(AirDrag { coefficient: 0.3 })],
+        ..Default::default()
     }
 }
 
@@ -340,6 +341,7 @@ fn refinement_with_effects_descends_or_is_refused() {
     let opaque = || BackboneOptions {
         masses: None,
         effects: vec![Box::new(OpaqueDrag)],
+        ..Default::default()
     };
     let err = refine_stiffness(&data, &params(), &opaque, &cfg, None, &mut |_| {}).unwrap_err();
     assert!(err.to_string().contains("opaque-drag"), "{err}");

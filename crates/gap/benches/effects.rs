@@ -105,6 +105,7 @@ fn bench(c: &mut Criterion) {
         let options = BackboneOptions {
             masses: None,
             effects: effect.into_iter().collect(),
+            ..Default::default()
         };
         let bb = Backbone::with_options(&x, &[], params(), config, options)
             .expect("lattice with effect");

@@ -166,10 +166,10 @@ pub fn backbone_options(
     frame: &crate::MaterialFrame,
 ) -> springs::BackboneOptions {
     springs::BackboneOptions {
-        masses: None,
         effects: effects
             .iter()
             .map(|b| b.effect.effect(&b.values, frame))
             .collect(),
+        ..Default::default()
     }
 }

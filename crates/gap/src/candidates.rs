@@ -506,8 +506,8 @@ impl Family for CandidateFamily {
         (
             params,
             BackboneOptions {
-                masses: None,
                 effects,
+                ..Default::default()
             },
         )
     }

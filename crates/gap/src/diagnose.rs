@@ -434,8 +434,8 @@ fn signature_options(
         effects.push(cand.effect(v, frame));
     }
     springs::BackboneOptions {
-        masses: None,
         effects,
+        ..Default::default()
     }
 }
 

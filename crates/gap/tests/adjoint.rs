@@ -52,8 +52,8 @@ fn backbone(effect: Box<dyn Effect>) -> (Backbone, State, Actions) {
         ground_friction: 0.4,
     };
     let options = BackboneOptions {
-        masses: None,
         effects: vec![effect],
+        ..Default::default()
     };
     let bb = Backbone::with_options(&x, &held, params, SimConfig::default(), options).unwrap();
     let mut rng = Rng(7);

@@ -64,6 +64,7 @@ fn roll(effect: Option<(Candidate, Vec<f64>)>) -> Vec<Vec<Vec3>> {
         BackboneOptions {
             masses: None,
             effects,
+            ..Default::default()
         },
     )
     .unwrap();
@@ -211,6 +212,7 @@ fn bad_effect_parameters_are_errors_not_panics() {
         let opts = BackboneOptions {
             masses: None,
             effects: vec![c.effect(&v, &f)],
+            ..Default::default()
         };
         assert!(
             Backbone::with_options(&x, &held, params(), SimConfig::default(), opts).is_err(),
@@ -245,6 +247,7 @@ fn lone_particle(
         BackboneOptions {
             masses: None,
             effects: vec![candidate.effect(values, &frame(&x))],
+            ..Default::default()
         },
     )
     .unwrap();
@@ -344,6 +347,7 @@ fn grasp_height(grasp: Option<Vec<f64>>, lying: bool) -> f32 {
         BackboneOptions {
             masses: None,
             effects,
+            ..Default::default()
         },
     )
     .unwrap();

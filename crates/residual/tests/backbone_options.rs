@@ -42,6 +42,7 @@ fn the_options_reach_every_backbone_of_the_set() {
     let drag: BackboneOptionsFn = std::sync::Arc::new(|| BackboneOptions {
         masses: None,
         effects: vec![Box::new(AirDrag { coefficient: 5.0 })],
+        ..Default::default()
     });
     let mut dragged = set(drag);
     let (a, b) = (end_of_sample(&plain), end_of_sample(&dragged));

@@ -1,7 +1,7 @@
 use std::num::NonZeroUsize;
 use std::sync::Arc;
 
-use dataset::{Dataset, DatasetMeta, Episode, MaterialNeighbours, Split, Structure};
+use dataset::{Dataset, DatasetMeta, Episode, MaterialNeighbours, MaterialPairs, Split, Structure};
 use glam::Vec3;
 use kiddo::SquaredEuclidean;
 use kiddo::immutable::float::kdtree::ImmutableKdTree;
@@ -12,6 +12,12 @@ use crate::{SceneError, Window};
 /// Default [`SceneConfig::fill_spacing_factor`], chosen on the teddy and sloth fixtures
 /// (docs/pipelines.md).
 const FILL_FACTOR: f32 = 1.5;
+
+/// With material springs, a pair of tracked points whose mean distance over the training
+/// recordings exceeds this multiple of the spring radius gets no spring: material neighbours
+/// within the radius at the start frame stay about that close (a strain of 100 % would be
+/// needed to reach the bound), parts that only touch there are usually tens of radii apart.
+pub const MATERIAL_PAIR_FACTOR: f32 = 2.0;
 
 /// How to turn tracked points into a simulated object.
 #[derive(Clone, Debug, PartialEq)]
@@ -42,9 +48,32 @@ pub struct SceneConfig {
     /// xtask` pipeline does, since 2026-11-28: docs/pipelines.md, "Occluded points at the
     /// start").
     pub unseen: Option<Arc<MaterialNeighbours>>,
+    /// Material springs: when set, [`Scene::backbone`] joins two tracked points only if their
+    /// mean distance over the training recordings is at most [`MATERIAL_PAIR_FACTOR`] times the
+    /// spring radius, so parts of the object that merely touch at the start frame (a rope
+    /// lying across its own loop) are not glued together. `None` (the default) builds the
+    /// reference's springs: every pair within the radius. Set it with
+    /// [`SceneConfig::with_material_pairs_of`] (docs/pipelines.md, "Material springs").
+    pub material_pairs: Option<Arc<MaterialPairs>>,
 }
 
 impl SceneConfig {
+    /// This configuration with [`SceneConfig::material_pairs`] learned from `data`'s training
+    /// split; an error when the split is empty, its episodes disagree on the particle count or
+    /// they track more than [`dataset::MAX_PAIR_POINTS`] points.
+    pub fn with_material_pairs_of(mut self, data: &Dataset) -> Result<Self, SceneError> {
+        let episodes = data
+            .split_indices(Split::Train)
+            .into_iter()
+            .map(|i| data.load_episode(i))
+            .collect::<Result<Vec<_>, _>>()?;
+        let pairs = MaterialPairs::learn(&episodes).ok_or_else(|| SceneError::MaterialPairs {
+            dataset: data.root.display().to_string(),
+        })?;
+        self.material_pairs = Some(Arc::new(pairs));
+        Ok(self)
+    }
+
     /// This configuration with [`SceneConfig::unseen`] learned from `data`'s training split
     /// (left `None` when the split is empty or its episodes disagree on the particle count).
     pub fn with_neighbours_of(mut self, data: &Dataset) -> Result<Self, SceneError> {
@@ -67,6 +96,7 @@ impl Default for SceneConfig {
             substep: Substep::AUTO,
             carry_occluded: true,
             unseen: None,
+            material_pairs: None,
         }
     }
 }
@@ -95,6 +125,7 @@ pub struct Scene {
     config: SimConfig,
     carry_occluded: bool,
     unseen: Option<Arc<MaterialNeighbours>>,
+    material_pairs: Option<Arc<MaterialPairs>>,
 }
 
 impl Scene {
@@ -116,6 +147,14 @@ impl Scene {
         let fps = meta.fps;
         let mut held = episode.held_or_default(meta.manipulation, meta.gripper_radius);
         if let Some(table) = &config.unseen
+            && table.particles() != episode.particles()
+        {
+            return Err(SceneError::NeighboursMismatch {
+                table: table.particles(),
+                particles: episode.particles(),
+            });
+        }
+        if let Some(table) = &config.material_pairs
             && table.particles() != episode.particles()
         {
             return Err(SceneError::NeighboursMismatch {
@@ -205,6 +244,7 @@ impl Scene {
             config: sim,
             carry_occluded: config.carry_occluded,
             unseen: config.unseen.clone(),
+            material_pairs: config.material_pairs.clone(),
         })
     }
 
@@ -233,14 +273,23 @@ impl Scene {
         self.init.x.len()
     }
 
-    /// The backbone for this scene: springs from the start frame; `options` carries
-    /// per-particle masses and effects (none by default).
+    /// The backbone for this scene: springs from the start frame (between material neighbours
+    /// only, when the scene's configuration has [`SceneConfig::material_pairs`] and `options`
+    /// no filter of its own); `options` carries per-particle masses and effects (none by
+    /// default).
     pub fn backbone(
         &self,
         params: &SpringParams,
         config: &SimConfig,
-        options: BackboneOptions,
+        mut options: BackboneOptions,
     ) -> Result<Backbone, SceneError> {
+        if options.pair_filter.is_none()
+            && let Some(pairs) = &self.material_pairs
+        {
+            options.pair_filter = Some(Arc::new(MaterialSprings {
+                pairs: pairs.clone(),
+            }));
+        }
         Ok(Backbone::with_options(
             &self.init.x,
             &self.held,
@@ -294,6 +343,7 @@ impl Scene {
             config: self.config,
             carry_occluded: self.carry_occluded,
             unseen: self.unseen.clone(),
+            material_pairs: self.material_pairs.clone(),
         })
     }
 
@@ -316,6 +366,22 @@ impl Scene {
                 p
             })
             .collect())
+    }
+}
+
+/// The spring filter of [`SceneConfig::material_pairs`]: tracked points far apart on average
+/// are not material neighbours. Hidden and interior particles (beyond the table) and pairs
+/// seen together too rarely keep the reference rule.
+#[derive(Debug)]
+struct MaterialSprings {
+    pairs: Arc<MaterialPairs>,
+}
+
+impl springs::PairFilter for MaterialSprings {
+    fn keep(&self, a: usize, b: usize, threshold: f32) -> bool {
+        self.pairs
+            .mean_distance(a, b)
+            .is_none_or(|d| d <= MATERIAL_PAIR_FACTOR * threshold)
     }
 }
 
@@ -515,6 +581,101 @@ mod tests {
             Err(SceneError::NeighboursMismatch {
                 table: 4,
                 particles: 3
+            })
+        ));
+    }
+
+    /// Ten points 1 cm apart: straight (`fold = false`) or bent into a hairpin whose two legs
+    /// lie 5 mm apart (point 9 beside point 0), for `frames` frames.
+    fn row_of_ten(frames: usize, fold: bool) -> Episode {
+        let at = |i: usize| {
+            if fold && i >= 5 {
+                Vec3::new(0.01 * (9 - i) as f32, 0.005, 0.0)
+            } else {
+                Vec3::new(0.01 * i as f32, 0.0, 0.0)
+            }
+        };
+        let positions = (0..frames).flat_map(|_| (0..10).map(at)).collect();
+        Episode::new(
+            frames,
+            10,
+            1,
+            positions,
+            vec![Vec3::new(0.0, 0.0, 0.5); frames],
+        )
+        .unwrap()
+    }
+
+    #[test]
+    fn material_springs_do_not_glue_parts_that_only_touch_at_the_start() {
+        let meta = DatasetMeta::new("row", 10.0, dataset::Manipulation::Grasp);
+        let pairs = MaterialPairs::learn([&row_of_ten(4, false), &row_of_ten(4, false)]).unwrap();
+        let reference = SceneConfig {
+            fill_volume: false,
+            ..SceneConfig::default()
+        };
+        let material = SceneConfig {
+            material_pairs: Some(Arc::new(pairs)),
+            ..reference.clone()
+        };
+        let folded = row_of_ten(3, true);
+        let window = Window { start: 1, steps: 1 };
+        let params = SpringParams {
+            threshold: 0.015,
+            max_springs: 20,
+            ..SpringParams::reference_rope()
+        };
+        let springs = |config: &SceneConfig| {
+            let scene = Scene::new(&meta, &folded, window, config).unwrap();
+            let bb = scene
+                .backbone(&params, &scene.sim_config(), BackboneOptions::default())
+                .unwrap();
+            let mut s = bb.springs().to_vec();
+            s.sort();
+            s
+        };
+        let along: Vec<[u32; 2]> = (0..9).map(|i| [i, i + 1]).collect();
+        let glued = springs(&reference);
+        // The reference joins the legs across the 5 mm gap (point 0 to 9, 1 to 8, ...).
+        assert!(
+            glued.contains(&[0, 9]) && glued.contains(&[3, 6]),
+            "{glued:?}"
+        );
+        // Material springs join only pairs at most 2 x 1.5 cm apart along the row (at the bend,
+        // 3 and 6 lie 1.1 cm apart and are 3 cm apart along it): every neighbour along it, no
+        // leg to the other.
+        let kept = springs(&material);
+        assert!(along.iter().all(|s| kept.contains(s)), "{kept:?}");
+        assert!(kept.iter().all(|[a, b]| b - a <= 3), "{kept:?}");
+        assert!(kept.contains(&[3, 6]), "{kept:?}");
+        // A filter of the caller's own wins over the table.
+        #[derive(Debug)]
+        struct KeepAll;
+        impl springs::PairFilter for KeepAll {
+            fn keep(&self, _: usize, _: usize, _: f32) -> bool {
+                true
+            }
+        }
+        let scene = Scene::new(&meta, &folded, window, &material).unwrap();
+        let options = BackboneOptions {
+            pair_filter: Some(Arc::new(KeepAll)),
+            ..BackboneOptions::default()
+        };
+        let own = scene
+            .backbone(&params, &scene.sim_config(), options)
+            .unwrap();
+        assert_eq!(own.springs().len(), glued.len());
+        // A table for other points is refused.
+        let four = Episode::new(4, 4, 1, vec![Vec3::X; 16], vec![Vec3::ZERO; 4]).unwrap();
+        let wrong = SceneConfig {
+            material_pairs: MaterialPairs::learn([&four]).map(Arc::new),
+            ..material
+        };
+        assert!(matches!(
+            Scene::new(&meta, &folded, window, &wrong),
+            Err(SceneError::NeighboursMismatch {
+                table: 4,
+                particles: 10
             })
         ));
     }

@@ -31,6 +31,16 @@ pub enum SceneError {
         /// Tracked points in the episode.
         particles: usize,
     },
+    /// Material springs need a pair table learned from the training split.
+    #[error(
+        "cannot learn material springs from {dataset}: its training split is empty, its episodes \
+         disagree on the tracked points, or they track more than {} points",
+        dataset::MAX_PAIR_POINTS
+    )]
+    MaterialPairs {
+        /// The dataset's directory.
+        dataset: String,
+    },
     /// The prediction does not match the scene's window.
     #[error("prediction has {got} steps of {particles} particles, expected {steps} steps")]
     PredictionShape {

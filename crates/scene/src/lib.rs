@@ -12,6 +12,9 @@
 //!   ([`Scene::start_frame`]) and points not seen at all yet placed among their material
 //!   neighbours ([`SceneConfig::with_neighbours_of`]); the gripper actions over the window; the
 //!   ground truth it will be scored on.
+//! - [`Scene::backbone`] builds the spring-mass model from the start frame, with the
+//!   reference's springs or, with [`SceneConfig::with_material_pairs_of`], springs between
+//!   material neighbours only (not between parts that merely touch at the start frame).
 //! - [`Scene::rollout`] runs the backbone with given parameters and returns the tracked
 //!   particles' predicted positions per step; [`score_steps`] and [`position_mse`] score them
 //!   against the truth, counting only particles the tracker saw.
@@ -34,7 +37,7 @@ mod error;
 mod score;
 mod window;
 
-pub use build::{Scene, SceneConfig};
+pub use build::{MATERIAL_PAIR_FACTOR, Scene, SceneConfig};
 pub use error::SceneError;
 pub use score::{StepErrors, deform_l1, position_mse, score_steps};
 pub use window::{Protocol, Window};

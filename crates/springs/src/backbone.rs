@@ -16,6 +16,9 @@ pub struct BackboneOptions {
     pub masses: Option<Vec<f32>>,
     /// Extra force terms, applied in order.
     pub effects: Vec<Box<dyn Effect>>,
+    /// Pairs that may not be joined by a spring even within the threshold
+    /// ([`Topology::build_with`]); `None` joins every pair within it, as the reference does.
+    pub pair_filter: Option<std::sync::Arc<dyn crate::PairFilter>>,
 }
 
 /// A spring-mass model of one object: topology, parameters and a fixed substep.
@@ -133,7 +136,12 @@ impl Backbone {
                 got: masses.len(),
             });
         }
-        let topo = Topology::build(rest_positions, params.threshold, params.max_springs)?;
+        let topo = Topology::build_with(
+            rest_positions,
+            params.threshold,
+            params.max_springs,
+            options.pair_filter.as_deref(),
+        )?;
         let (springs, mut rest_lengths, partition) = if config.partitions > 1 {
             let (s, l, p) = crate::partition::order(
                 topo,

@@ -59,4 +59,4 @@ pub use params::{
     PAPER_BOUNDS, ParamBounds, REFERENCE_BOUNDS, SpringParams,
 };
 pub use step::{RolloutJob, Scratch, rollout_batch};
-pub use topology::Topology;
+pub use topology::{PairFilter, Topology};

@@ -31,6 +31,14 @@ fn dist2(a: Vec3, b: Vec3) -> f32 {
     (Vec3A::from(b) - Vec3A::from(a)).length_squared()
 }
 
+/// Which pairs of particles may be joined by a spring (beyond being within the threshold at
+/// the start frame): e.g. material neighbours only, not parts of an object that merely touch
+/// there (`scene`'s material springs). Must be symmetric in `a` and `b`.
+pub trait PairFilter: std::fmt::Debug + Send + Sync {
+    /// Whether particles `a` and `b` may be joined, under the spring radius `threshold` (m).
+    fn keep(&self, a: usize, b: usize, threshold: f32) -> bool;
+}
+
 impl Topology {
     /// Build springs the reference way (docs/physics.md):
     /// 1. for every particle, its up to `max_springs + 3` nearest other particles with
@@ -48,6 +56,32 @@ impl Topology {
     /// # Ok::<(), springs::SimError>(())
     /// ```
     pub fn build(positions: &[Vec3], threshold: f32, max_springs: u32) -> Result<Self, SimError> {
+        Self::build_with(positions, threshold, max_springs, None)
+    }
+
+    /// [`Topology::build`] with the pairs `filter` rejects left out before step 1, so that they
+    /// neither become springs nor take a particle's place among its nearest candidates.
+    ///
+    /// ```
+    /// use glam::Vec3;
+    /// #[derive(Debug)]
+    /// struct NotAcrossTwo;
+    /// impl springs::PairFilter for NotAcrossTwo {
+    ///     fn keep(&self, a: usize, b: usize, _threshold: f32) -> bool {
+    ///         (a < 2) == (b < 2)
+    ///     }
+    /// }
+    /// let pts: Vec<Vec3> = (0..4).map(|i| Vec3::new(0.01 * i as f32, 0.0, 0.0)).collect();
+    /// let topo = springs::Topology::build_with(&pts, 0.015, 8, Some(&NotAcrossTwo))?;
+    /// assert_eq!(topo.springs, vec![[0, 1], [2, 3]]);
+    /// # Ok::<(), springs::SimError>(())
+    /// ```
+    pub fn build_with(
+        positions: &[Vec3],
+        threshold: f32,
+        max_springs: u32,
+        filter: Option<&dyn PairFilter>,
+    ) -> Result<Self, SimError> {
         if !(threshold.is_finite() && threshold > 0.0) {
             return Err(SimError::InvalidParameter {
                 name: "threshold",
@@ -101,7 +135,7 @@ impl Topology {
                     continue;
                 }
                 let d2 = dist2(p, positions[j as usize]);
-                if d2 <= t2 {
+                if d2 <= t2 && filter.is_none_or(|f| f.keep(i, j as usize, threshold)) {
                     near.push((d2, j));
                 }
             }

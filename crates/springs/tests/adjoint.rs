@@ -254,6 +254,7 @@ fn the_stiffness_gradient_matches_finite_differences() {
                 let options = springs::BackboneOptions {
                     masses: None,
                     effects: vec![Box::new(scale)],
+                    ..Default::default()
                 };
                 let held = bb.held().to_vec();
                 let b =
@@ -328,6 +329,7 @@ fn with_effect(bb: &Backbone, x: &[Vec3], effect: Box<dyn springs::Effect>) -> B
     let options = springs::BackboneOptions {
         masses: None,
         effects: vec![effect],
+        ..Default::default()
     };
     Backbone::with_options(x, bb.held(), *bb.params(), *bb.config(), options).unwrap()
 }

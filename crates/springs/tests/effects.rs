@@ -16,6 +16,7 @@ fn with(effects: Vec<Box<dyn Effect>>) -> BackboneOptions {
     BackboneOptions {
         masses: None,
         effects,
+        ..Default::default()
     }
 }
 
@@ -192,6 +193,7 @@ fn masses_change_the_response() {
     let masses = BackboneOptions {
         masses: Some(vec![3.0, 3.0]),
         effects: Vec::new(),
+        ..Default::default()
     };
     let direct = Backbone::with_options(&x, &[], p, cfg, masses).unwrap();
     assert_eq!(heavy.masses(), &[3.0, 3.0]);

@@ -218,6 +218,7 @@ fn bad_input_is_rejected() {
     let opts = |m: Vec<f32>| BackboneOptions {
         masses: Some(m),
         effects: Vec::new(),
+        ..Default::default()
     };
     let r = Backbone::with_options(&x, &[], p, c, opts(vec![1.0; 3]));
     assert!(matches!(

@@ -114,6 +114,7 @@ fn estimate_matches_a_dense_eigensolver() {
             springs::BackboneOptions {
                 masses: Some(masses),
                 effects: Vec::new(),
+                ..Default::default()
             },
         )
         .unwrap();
@@ -351,6 +352,7 @@ fn an_effect_that_scales_the_springs_scales_the_spectral_estimate() {
             springs::BackboneOptions {
                 masses: None,
                 effects,
+                ..Default::default()
             },
         )
         .unwrap()

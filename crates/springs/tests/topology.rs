@@ -4,16 +4,46 @@ mod common;
 
 use glam::{Vec3, Vec3A};
 use proptest::prelude::*;
-use springs::{SimError, Topology};
+use springs::{PairFilter, SimError, Topology};
+
+/// A symmetric filter that rejects about a third of the pairs, pseudo-randomly by `salt`.
+#[derive(Debug)]
+struct Sieve(u64);
+
+impl Sieve {
+    fn keeps(&self, a: usize, b: usize) -> bool {
+        let (lo, hi) = (a.min(b) as u64, a.max(b) as u64);
+        let h = (lo.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ hi.wrapping_mul(0xC2B2_AE3D_27D4_EB4F))
+            .wrapping_add(self.0)
+            .wrapping_mul(0x1656_67B1_9E37_79F9);
+        (h >> 33) % 3 != 0
+    }
+}
+
+impl PairFilter for Sieve {
+    fn keep(&self, a: usize, b: usize, _threshold: f32) -> bool {
+        self.keeps(a, b)
+    }
+}
 
 /// Independent O(N^2) implementation of the reference rule (see `Topology::build`).
 fn brute_force(x: &[Vec3], threshold: f32, max_springs: u32) -> Vec<([u32; 2], f32)> {
+    brute_force_keeping(x, threshold, max_springs, &|_, _| true)
+}
+
+/// The same, joining only pairs `keep` accepts (see `Topology::build_with`).
+fn brute_force_keeping(
+    x: &[Vec3],
+    threshold: f32,
+    max_springs: u32,
+    keep: &dyn Fn(usize, usize) -> bool,
+) -> Vec<([u32; 2], f32)> {
     let n = x.len();
     let d2 = |i: usize, j: usize| (Vec3A::from(x[j]) - Vec3A::from(x[i])).length_squared();
     let mut cands = Vec::new();
     for i in 0..n {
         let mut near: Vec<(f32, usize)> = (0..n)
-            .filter(|&j| j != i && d2(i, j) <= threshold * threshold)
+            .filter(|&j| j != i && d2(i, j) <= threshold * threshold && keep(i, j))
             .map(|j| (d2(i, j), j))
             .collect();
         near.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
@@ -62,6 +92,30 @@ proptest! {
         let got: Vec<([u32; 2], f32)> =
             topo.springs.iter().copied().zip(topo.rest_lengths.iter().copied()).collect();
         prop_assert_eq!(got, expected);
+    }
+
+    #[test]
+    fn a_filter_matches_brute_force_without_the_rejected_pairs(
+        seed in any::<u64>(), salt in any::<u64>(), n in 0usize..120, grid in any::<bool>(),
+        threshold in 0.002f32..0.03, max_springs in 0u32..40,
+    ) {
+        let x = points(seed, n, grid);
+        let sieve = Sieve(salt);
+        let topo = Topology::build_with(&x, threshold, max_springs, Some(&sieve)).unwrap();
+        let expected = brute_force_keeping(&x, threshold, max_springs, &|a, b| sieve.keeps(a, b));
+        let got: Vec<([u32; 2], f32)> =
+            topo.springs.iter().copied().zip(topo.rest_lengths.iter().copied()).collect();
+        prop_assert_eq!(got, expected);
+        // No filter and a filter that keeps everything are the reference rule.
+        #[derive(Debug)]
+        struct All;
+        impl PairFilter for All {
+            fn keep(&self, _: usize, _: usize, _: f32) -> bool { true }
+        }
+        prop_assert_eq!(
+            Topology::build_with(&x, threshold, max_springs, Some(&All)).unwrap(),
+            Topology::build(&x, threshold, max_springs).unwrap()
+        );
     }
 
     #[test]
