@@ -132,18 +132,7 @@ fn write_copy(
     meta: &DatasetMeta,
     val_indices: Vec<usize>,
 ) -> Result<DevSplitReport> {
-    let occupied = out.exists()
-        && std::fs::read_dir(out)
-            .map_err(|e| Error::io(out, e))?
-            .next()
-            .is_some();
-    if occupied {
-        return Err(Error::invalid(
-            out,
-            "the output directory exists and is not empty (a development split is always \
-             written to a new directory)",
-        ));
-    }
+    ensure_new_dir(out, "a development split")?;
     std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
     let entries = std::fs::read_dir(&src.root).map_err(|e| Error::io(&src.root, e))?;
     for entry in entries {
@@ -164,6 +153,26 @@ fn write_copy(
         test: count(Split::Test),
         val_indices,
     })
+}
+
+/// Errors unless `out` does not exist or is an empty directory: `what` (a new dataset) is
+/// always written to a new directory, never over another.
+pub(crate) fn ensure_new_dir(out: &Path, what: &str) -> Result<()> {
+    let occupied = out.exists()
+        && std::fs::read_dir(out)
+            .map_err(|e| Error::io(out, e))?
+            .next()
+            .is_some();
+    if occupied {
+        return Err(Error::invalid(
+            out,
+            format!(
+                "the output directory exists and is not empty ({what} is always written to a \
+                 new directory)"
+            ),
+        ));
+    }
+    Ok(())
 }
 
 /// The same error, naming `path` (the source index) instead of the bare index file name.

@@ -98,7 +98,7 @@ pub fn merge(parts: &[MergePart<'_>], out: &Path) -> Result<MergeReport> {
             ));
         }
     }
-    ensure_new(out)?;
+    crate::dev_split::ensure_new_dir(out, "a merge")?;
     std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
     let mut meta = DatasetMeta {
         episodes: Vec::new(),
@@ -155,22 +155,6 @@ fn truth_file(index: usize) -> String {
 fn copy_file(from: &Path, to: &Path) -> Result<()> {
     let bytes = std::fs::read(from).map_err(|e| Error::io(from, e))?;
     write_atomic(to, &bytes)
-}
-
-fn ensure_new(out: &Path) -> Result<()> {
-    let occupied = out.exists()
-        && std::fs::read_dir(out)
-            .map_err(|e| Error::io(out, e))?
-            .next()
-            .is_some();
-    if occupied {
-        return Err(Error::invalid(
-            out,
-            "the output directory exists and is not empty (a merge is always written to a new \
-             directory)",
-        ));
-    }
-    Ok(())
 }
 
 /// Errors, naming `data`'s index and the first setting that differs, unless `data` describes
