@@ -17,8 +17,8 @@ use crate::Episode;
 const FRAMES_PER_EPISODE: usize = 8;
 /// Co-visible samples a pair needs before its mean distance is trusted.
 const MIN_SAMPLES: u32 = 3;
-/// Most tracked points a table is learned for: it holds every pair (8 bytes each), so 4096
-/// points take 67 MB.
+/// Most tracked points a table is learned for: it holds every pair, 12 bytes each while
+/// learning and 4 after, so 4096 points take about 100 MB while learning and 34 MB after.
 pub const MAX_PAIR_POINTS: usize = 4096;
 
 /// Per pair of tracked points, the mean distance between them over the training recordings'
