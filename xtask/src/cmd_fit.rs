@@ -9,7 +9,8 @@ use fit::{BackboneFamily, FitConfig};
 use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::common::{
-    BackboneFile, ProtocolArg, SceneSetting, SubstepArg, backbone_path, scenes, warn_if_unconnected,
+    BackboneFile, ProtocolArg, SceneSetting, SubstepArg, backbone_path, note_glued_springs, scenes,
+    warn_if_unconnected,
 };
 use crate::report::write_json;
 
@@ -165,6 +166,9 @@ pub fn run(args: &FitArgs) -> anyhow::Result<BackboneFile> {
     let params = BackboneFamily::params(&outcome.best);
     if let Some(scene) = scenes.first() {
         warn_if_unconnected(scene, &params, Default::default())?;
+    }
+    if !args.material_springs {
+        note_glued_springs(&data, &scenes, &params)?;
     }
     let generations_wall: f64 = outcome.history.iter().map(|g| g.wall_s).sum();
     let file = BackboneFile {

@@ -265,6 +265,46 @@ pub fn warn_if_unconnected(
     Ok(())
 }
 
+/// Prints a note when the reference construction glues parts together: some of `scenes` (the
+/// training split's) start with springs between tracked points whose mean distance over the
+/// training recordings is beyond [`scene::MATERIAL_PAIR_FACTOR`] times the threshold, as happens
+/// when episodes are cut from longer recordings where the object lies across itself
+/// (docs/pipelines.md, "Material springs"). Silent when there is nothing to say or the table
+/// cannot be learned (too many points, particle counts that disagree).
+pub fn note_glued_springs(
+    data: &Dataset,
+    scenes: &[Scene],
+    params: &springs::SpringParams,
+) -> anyhow::Result<()> {
+    use rayon::prelude::*;
+    let episodes = data
+        .split_indices(Split::Train)
+        .into_iter()
+        .map(|i| data.load_episode(i))
+        .collect::<Result<Vec<_>, _>>()?;
+    let Some(pairs) = dataset::MaterialPairs::learn(&episodes) else {
+        return Ok(());
+    };
+    let counts: Vec<usize> = scenes
+        .par_iter()
+        .map(|s| s.glued_springs(params, &pairs))
+        .collect::<Result<_, _>>()?;
+    let glued = counts.iter().filter(|&&c| c > 0).count();
+    if glued > 0 {
+        println!(
+            "note: {glued} of {} training episodes start with springs between points that lie \
+             more than {} m apart on average over the training recordings ({} springs): parts \
+             touching at an episode's first frame are glued for its whole rollout; \
+             `--material-springs` joins material neighbours only (docs/pipelines.md, \
+             \"Material springs\")",
+            scenes.len(),
+            (scene::MATERIAL_PAIR_FACTOR * params.threshold * 1000.0).round() / 1000.0,
+            counts.iter().sum::<usize>()
+        );
+    }
+    Ok(())
+}
+
 /// Path of the backbone file in a run directory.
 pub fn backbone_path(run: &Path) -> PathBuf {
     run.join("backbone.json")

@@ -273,6 +273,35 @@ impl Scene {
         self.init.x.len()
     }
 
+    /// How many springs the reference construction (every pair within the threshold, the
+    /// paper's) builds at this scene's start between tracked points that `pairs` says are not
+    /// material neighbours: their mean distance over the training recordings exceeds
+    /// [`MATERIAL_PAIR_FACTOR`] times the threshold. Such springs glue parts that only touch at
+    /// the start frame for the whole rollout (docs/pipelines.md, "Material springs").
+    /// Whatever [`SceneConfig::material_pairs`] this scene was built with is ignored.
+    pub fn glued_springs(
+        &self,
+        params: &SpringParams,
+        pairs: &MaterialPairs,
+    ) -> Result<usize, SceneError> {
+        let options = BackboneOptions {
+            pair_filter: Some(Arc::new(EveryPair)),
+            ..BackboneOptions::default()
+        };
+        let bb = self.backbone(params, &self.sim_config(), options)?;
+        let limit = MATERIAL_PAIR_FACTOR * params.threshold;
+        Ok(bb
+            .springs()
+            .iter()
+            .filter(|&&[a, b]| {
+                let (a, b) = (a as usize, b as usize);
+                a < self.tracked
+                    && b < self.tracked
+                    && pairs.mean_distance(a, b).is_some_and(|d| d > limit)
+            })
+            .count())
+    }
+
     /// The backbone for this scene: springs from the start frame (between material neighbours
     /// only, when the scene's configuration has [`SceneConfig::material_pairs`] and `options`
     /// no filter of its own); `options` carries per-particle masses and effects (none by
@@ -366,6 +395,16 @@ impl Scene {
                 p
             })
             .collect())
+    }
+}
+
+/// The reference construction's rule: every pair within the threshold.
+#[derive(Debug)]
+struct EveryPair;
+
+impl springs::PairFilter for EveryPair {
+    fn keep(&self, _: usize, _: usize, _: f32) -> bool {
+        true
     }
 }
 
@@ -645,6 +684,17 @@ mod tests {
         // 3 and 6 lie 1.1 cm apart and are 3 cm apart along it): every neighbour along it, no
         // leg to the other.
         let kept = springs(&material);
+        // What the reference construction glues, counted against the table: every leg-to-leg
+        // spring, whichever construction the scene itself was built with.
+        let table = material.material_pairs.as_deref().unwrap();
+        let legs = glued.iter().filter(|[a, b]| b - a > 3).count();
+        assert!(legs > 0);
+        for config in [&reference, &material] {
+            let scene = Scene::new(&meta, &folded, window, config).unwrap();
+            assert_eq!(scene.glued_springs(&params, table).unwrap(), legs);
+        }
+        let straight = Scene::new(&meta, &row_of_ten(3, false), window, &reference).unwrap();
+        assert_eq!(straight.glued_springs(&params, table).unwrap(), 0);
         assert!(along.iter().all(|s| kept.contains(s)), "{kept:?}");
         assert!(kept.iter().all(|[a, b]| b - a <= 3), "{kept:?}");
         assert!(kept.contains(&[3, 6]), "{kept:?}");
