@@ -1,14 +1,16 @@
-//! How a `diagnose-bench` run's verdicts depend on the verdict rule's floor, without refitting:
-//! every stored case report is re-judged ([`gap::Diagnosis::rejudge`]) at each floor and the
-//! bench's counts are printed per class.
+//! How a `diagnose-bench` run's verdicts depend on the verdict rule, without refitting: every
+//! stored case report is re-judged ([`gap::Diagnosis::rejudge`]) under each rule and the bench's
+//! counts are printed per class. A rule is a floor (`--min-shrinkage`), optionally followed by
+//! `/` and a probe margin ([`gap::VerdictRule::probe_margin`]; without it, the stored rule's).
 //!
 //! ```sh
 //! cargo run --release -p pgrd-gap --example rejudge_bench -- <bench.json> <work-dir> 0.05,0.07
+//! cargo run --release -p pgrd-gap --example rejudge_bench -- <bench.json> <work-dir> 0.05/0.1,0.05/0.05
 //! ```
 //!
 //! Exact for a case as long as its object's base search (the no-effect diagnoses that chose the
-//! base effects every case is judged against) reaches the same verdicts at that floor; objects
-//! where it does not are marked, since a real run at that floor would diagnose their cases
+//! base effects every case is judged against) reaches the same verdicts under that rule; objects
+//! where it does not are marked, since a real run under that rule would diagnose their cases
 //! against another base model.
 
 use std::collections::{BTreeMap, BTreeSet};
@@ -22,23 +24,59 @@ fn read(path: &Path) -> anyhow::Result<Diagnosis> {
     serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))
 }
 
-fn floor_rule(d: &Diagnosis, floor: f64) -> VerdictRule {
-    VerdictRule {
-        min_shrinkage: floor,
-        ..d.config.rule
+/// A rule given on the command line: a floor and, optionally, a probe margin.
+#[derive(Clone, Copy)]
+struct RuleSpec {
+    floor: f64,
+    probe_margin: Option<f64>,
+}
+
+impl RuleSpec {
+    fn parse(text: &str) -> anyhow::Result<Self> {
+        let (floor, margin) = match text.trim().split_once('/') {
+            Some((f, m)) => (f, Some(m)),
+            None => (text.trim(), None),
+        };
+        Ok(RuleSpec {
+            floor: floor
+                .parse()
+                .with_context(|| format!("floor of {text:?}"))?,
+            probe_margin: margin
+                .map(|m| {
+                    m.parse()
+                        .with_context(|| format!("probe margin of {text:?}"))
+                })
+                .transpose()?,
+        })
+    }
+
+    fn rule(&self, d: &Diagnosis) -> VerdictRule {
+        VerdictRule {
+            min_shrinkage: self.floor,
+            probe_margin: self.probe_margin.unwrap_or(d.config.rule.probe_margin),
+            ..d.config.rule
+        }
+    }
+}
+
+impl std::fmt::Display for RuleSpec {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self.probe_margin {
+            Some(m) => write!(f, "{}/{m}", self.floor),
+            None => write!(f, "{}", self.floor),
+        }
     }
 }
 
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let [bench, work, floors] = args.as_slice() else {
-        bail!("usage: rejudge_bench <bench.json> <work-dir> <floor>[,<floor>...]");
+        bail!("usage: rejudge_bench <bench.json> <work-dir> <floor>[/<probe margin>][,...]");
     };
-    let floors: Vec<f64> = floors
+    let floors: Vec<RuleSpec> = floors
         .split(',')
-        .map(|f| f.trim().parse::<f64>())
-        .collect::<Result<_, _>>()
-        .context("floors")?;
+        .map(RuleSpec::parse)
+        .collect::<Result<_, _>>()?;
     let work = Path::new(work);
     let text = std::fs::read_to_string(bench).with_context(|| bench.clone())?;
     let json: serde_json::Value = serde_json::from_str(&text)?;
@@ -63,10 +101,10 @@ fn main() -> anyhow::Result<()> {
             }
             let d = read(&p)?;
             for (k, f) in floors.iter().enumerate() {
-                let v = d.rejudge(floor_rule(&d, *f))?.verdict;
+                let v = d.rejudge(f.rule(&d))?.verdict;
                 if v != d.verdict {
                     println!(
-                        "{object}: base search step {step} {} -> {v} at floor {f}",
+                        "{object}: base search step {step} {} -> {v} under rule {f}",
                         d.verdict
                     );
                     inexact.insert((object.clone(), k));
@@ -100,7 +138,7 @@ fn main() -> anyhow::Result<()> {
             d.verdict
         );
         for (k, f) in floors.iter().enumerate() {
-            let v = d.rejudge(floor_rule(&d, *f))?.verdict;
+            let v = d.rejudge(f.rule(&d))?.verdict;
             let mark = if inexact.contains(&(object.clone(), k)) {
                 "?"
             } else {
@@ -113,10 +151,10 @@ fn main() -> anyhow::Result<()> {
         println!("{line}");
     }
     println!(
-        "\nright / counted per class, floor by floor ({})",
+        "\nright / counted per class, rule by rule (floor[/probe margin]: {})",
         floors
             .iter()
-            .map(f64::to_string)
+            .map(RuleSpec::to_string)
             .collect::<Vec<_>>()
             .join(", ")
     );
