@@ -236,6 +236,13 @@ pub struct DiagnoseBenchArgs {
     /// Where generated datasets and reports go.
     #[arg(long, default_value = "target/diagnose-bench")]
     pub work: PathBuf,
+    /// Answer as the first two rounds of `cargo xtask chain` would: when a case's diagnosis
+    /// names an effect, diagnose again with that effect added at its refitted values (as
+    /// `diagnose --write-run` writes it; same settings and seed), and answer `unknown` when
+    /// that second round does, otherwise the first round's effect. Its report goes to
+    /// `report-round2` (`docs/gap.md`, "A second round after an effect verdict").
+    #[arg(long)]
+    pub second_round: bool,
 }
 
 /// One iteration of an object's base-model search.
@@ -300,8 +307,12 @@ pub struct BenchCase {
     pub class: String,
     /// What the diagnosis should say.
     pub expected: String,
-    /// What it said.
+    /// What it said (with `--second-round`, the answer after the second round).
     pub verdict: String,
+    /// With `--second-round`, when the first round named an effect: that round's verdict and
+    /// the second round's (the model with the effect added).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub rounds: Option<[String; 2]>,
     /// Strength used, as a multiple of the world's default (1 for `none`).
     pub scale: f32,
     /// The ladder as measured (empty for `none`).
@@ -870,7 +881,6 @@ pub fn run_bench(args: &DiagnoseBenchArgs) -> anyhow::Result<BenchSummary> {
             .estimated_s();
             let td = Instant::now();
             let mut d = diagnose(&train, &val, &model.model, &base, args, true)?;
-            let wall = td.elapsed().as_secs_f64();
             let mut network_wall = 0.0;
             if args.network_minutes > 0.0 && network_cases.contains(truth) {
                 let tn = Instant::now();
@@ -895,6 +905,24 @@ pub fn run_bench(args: &DiagnoseBenchArgs) -> anyhow::Result<BenchSummary> {
                 &d,
                 &format!("{object}, {truth} ×{scale}"),
             )?;
+            let mut rounds = None;
+            let mut answer = d.verdict.clone();
+            if args.second_round
+                && let Ok(effect) = Candidate::parse(&d.verdict)
+            {
+                let (start, with) = d.refitted_model(&model.model, Some(effect))?;
+                let d2 = diagnose(&train, &val, &start, &with, args, true)?;
+                write_report(
+                    &dir.join("report-round2"),
+                    &d2,
+                    &format!("{object}, {truth} ×{scale}, second round"),
+                )?;
+                if d2.verdict == "unknown" {
+                    answer = d2.verdict.clone();
+                }
+                rounds = Some([d.verdict.clone(), d2.verdict]);
+            }
+            let wall = td.elapsed().as_secs_f64() - network_wall;
             let in_base = base.iter().any(|b| b.effect.name() == truth);
             let out_of_library = truth.parse::<EffectKind>().is_ok_and(|k| !k.in_library());
             let (class, expected) = match truth.as_str() {
@@ -916,7 +944,8 @@ pub fn run_bench(args: &DiagnoseBenchArgs) -> anyhow::Result<BenchSummary> {
                 truth: truth.clone(),
                 class: class.to_string(),
                 expected,
-                verdict: d.verdict.clone(),
+                verdict: answer,
+                rounds,
                 scale,
                 ladder,
                 target_reached: reached,
@@ -974,6 +1003,12 @@ pub fn run_bench(args: &DiagnoseBenchArgs) -> anyhow::Result<BenchSummary> {
                 wall,
                 t.elapsed().as_secs_f64() - wall - network_wall
             );
+            if let Some([first, second]) = &case.rounds {
+                println!(
+                    "       first round {first}, second round (with {first}) {second}: answers {}",
+                    case.verdict
+                );
+            }
             if let Some(tb) = &case.tie_break {
                 println!(
                     "       tied on held-out error: {} (largest shrinkage {}, signature chose {})",
@@ -1267,6 +1302,84 @@ mod tests {
                 case.diagnose_estimated_s
             );
         }
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
+    #[test]
+    fn a_second_round_adds_the_first_rounds_effect_and_answers_by_the_rule() {
+        let dir = std::env::temp_dir().join(format!("pgrd-bench-round2-{}", std::process::id()));
+        let work = dir.display().to_string();
+        let args = bench_args(&[
+            "--objects",
+            "rope",
+            "--cases",
+            "actuation-delay,grasp-slip",
+            "--episodes",
+            "4",
+            "--val",
+            "3",
+            "--tracked",
+            "12",
+            "--generations",
+            "2",
+            "--fit-generations",
+            "2",
+            "--samples",
+            "2",
+            "--scales",
+            "4",
+            "--probe-factor",
+            "1",
+            "--max-base",
+            "0",
+            "--second-round",
+            "--work",
+            &work,
+        ]);
+        let summary = run_bench(&args).unwrap();
+        let read = |report: &Path| -> Diagnosis {
+            let text = std::fs::read_to_string(report.join("report.json")).unwrap();
+            serde_json::from_str(&text).unwrap()
+        };
+        let mut second_rounds = 0;
+        for case in &summary.cases {
+            let case_dir = dir.join(format!("rope-{}-x4", case.truth));
+            let first = read(&case_dir.join("report"));
+            match &case.rounds {
+                Some([named, second]) => {
+                    second_rounds += 1;
+                    assert_eq!(named, &first.verdict);
+                    let d2 = read(&case_dir.join("report-round2"));
+                    assert_eq!(second, &d2.verdict);
+                    // The second round's model: the first round's effect, at its refitted
+                    // values, added to the (here empty) base.
+                    let entry = first.ranking.iter().find(|r| &r.effect == named).unwrap();
+                    let added = d2.config.base.last().unwrap();
+                    assert_eq!(added.effect.name(), named);
+                    let n = added.values.len();
+                    let refitted: Vec<f64> = entry.fitted[entry.fitted.len() - n..]
+                        .iter()
+                        .map(|(_, v)| *v)
+                        .collect();
+                    assert_eq!(added.values, refitted);
+                    let answer = if second == "unknown" { second } else { named };
+                    assert_eq!(&case.verdict, answer);
+                }
+                None => {
+                    assert!(
+                        Candidate::parse(&first.verdict).is_err(),
+                        "{}",
+                        first.verdict
+                    );
+                    assert_eq!(case.verdict, first.verdict);
+                    assert!(!case_dir.join("report-round2").exists());
+                }
+            }
+        }
+        assert!(
+            second_rounds > 0,
+            "no case named an effect: the test saw no second round"
+        );
         std::fs::remove_dir_all(&dir).ok();
     }
 
