@@ -699,16 +699,9 @@ mod tests {
         assert!(kept.iter().all(|[a, b]| b - a <= 3), "{kept:?}");
         assert!(kept.contains(&[3, 6]), "{kept:?}");
         // A filter of the caller's own wins over the table.
-        #[derive(Debug)]
-        struct KeepAll;
-        impl springs::PairFilter for KeepAll {
-            fn keep(&self, _: usize, _: usize, _: f32) -> bool {
-                true
-            }
-        }
         let scene = Scene::new(&meta, &folded, window, &material).unwrap();
         let options = BackboneOptions {
-            pair_filter: Some(Arc::new(KeepAll)),
+            pair_filter: Some(Arc::new(EveryPair)),
             ..BackboneOptions::default()
         };
         let own = scene
