@@ -939,6 +939,8 @@ pub fn run_bench(args: &DiagnoseBenchArgs) -> anyhow::Result<BenchSummary> {
                 d.ranking.iter().find(|r| &r.effect == truth)
             };
             let after = truth_entry.map(|r| r.heldout_mde_after_cm);
+            // The first round's effect's, unless the second round turned the answer.
+            let answer_shrinkage = verdict_shrinkage(&d).filter(|_| answer == d.verdict);
             let case = BenchCase {
                 object: object.to_string(),
                 truth: truth.clone(),
@@ -949,7 +951,7 @@ pub fn run_bench(args: &DiagnoseBenchArgs) -> anyhow::Result<BenchSummary> {
                 scale,
                 ladder,
                 target_reached: reached,
-                verdict_shrinkage: verdict_shrinkage(&d),
+                verdict_shrinkage: answer_shrinkage,
                 mde_before_cm: before,
                 mde_without_effect_cm: e0,
                 attributable_gap_cm: gap,
@@ -1364,6 +1366,8 @@ mod tests {
                     assert_eq!(added.values, refitted);
                     let answer = if second == "unknown" { second } else { named };
                     assert_eq!(&case.verdict, answer);
+                    // The shrinkage shown is the answer's: none once it is `unknown`.
+                    assert_eq!(case.verdict_shrinkage.is_some(), answer == named);
                 }
                 None => {
                     assert!(
