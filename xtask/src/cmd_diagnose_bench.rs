@@ -1170,6 +1170,30 @@ mod tests {
         <Bench as clap::Parser>::try_parse_from(argv).unwrap().args
     }
 
+    /// A rope bench small enough for a test (4 training episodes of 12 tracked points, two
+    /// generations of two episodes in every refit), writing under `work`, with the test's
+    /// own `extra` flags.
+    fn tiny_rope_bench(work: &str, extra: &[&str]) -> DiagnoseBenchArgs {
+        let mut argv = vec![
+            "--objects",
+            "rope",
+            "--episodes",
+            "4",
+            "--tracked",
+            "12",
+            "--generations",
+            "2",
+            "--fit-generations",
+            "2",
+            "--samples",
+            "2",
+            "--work",
+            work,
+        ];
+        argv.extend_from_slice(extra);
+        bench_args(&argv)
+    }
+
     #[test]
     fn network_cases_outside_the_bench_are_refused_before_any_work() {
         let work = std::env::temp_dir().join(format!("pgrd-bench-nc-{}", std::process::id()));
@@ -1242,36 +1266,25 @@ mod tests {
         // diagnosis.
         let dir = std::env::temp_dir().join(format!("pgrd-bench-race-{}", std::process::id()));
         let work = dir.display().to_string();
-        let args = bench_args(&[
-            "--objects",
-            "rope",
-            "--cases",
-            "drag,bending",
-            "--episodes",
-            "4",
-            "--val",
-            "2",
-            "--tracked",
-            "12",
-            "--generations",
-            "2",
-            "--fit-generations",
-            "2",
-            "--samples",
-            "2",
-            "--scales",
-            "1",
-            "--race",
-            "1",
-            "--case-samples",
-            "1",
-            "--probe-factor",
-            "3",
-            "--case-seed",
-            "7",
-            "--work",
+        let args = tiny_rope_bench(
             &work,
-        ]);
+            &[
+                "--cases",
+                "drag,bending",
+                "--val",
+                "2",
+                "--scales",
+                "1",
+                "--race",
+                "1",
+                "--case-samples",
+                "1",
+                "--probe-factor",
+                "3",
+                "--case-seed",
+                "7",
+            ],
+        );
         let summary = run_bench(&args).unwrap();
         let read = |report: &str| -> Diagnosis {
             let text = std::fs::read_to_string(dir.join(report).join("report.json")).unwrap();
@@ -1311,33 +1324,22 @@ mod tests {
     fn a_second_round_adds_the_first_rounds_effect_and_answers_by_the_rule() {
         let dir = std::env::temp_dir().join(format!("pgrd-bench-round2-{}", std::process::id()));
         let work = dir.display().to_string();
-        let args = bench_args(&[
-            "--objects",
-            "rope",
-            "--cases",
-            "actuation-delay,grasp-slip",
-            "--episodes",
-            "4",
-            "--val",
-            "3",
-            "--tracked",
-            "12",
-            "--generations",
-            "2",
-            "--fit-generations",
-            "2",
-            "--samples",
-            "2",
-            "--scales",
-            "4",
-            "--probe-factor",
-            "1",
-            "--max-base",
-            "0",
-            "--second-round",
-            "--work",
+        let args = tiny_rope_bench(
             &work,
-        ]);
+            &[
+                "--cases",
+                "actuation-delay,grasp-slip",
+                "--val",
+                "3",
+                "--scales",
+                "4",
+                "--probe-factor",
+                "1",
+                "--max-base",
+                "0",
+                "--second-round",
+            ],
+        );
         let summary = run_bench(&args).unwrap();
         let read = |report: &Path| -> Diagnosis {
             let text = std::fs::read_to_string(report.join("report.json")).unwrap();
