@@ -166,10 +166,10 @@ pub fn backbone_options(
     frame: &crate::MaterialFrame,
 ) -> springs::BackboneOptions {
     springs::BackboneOptions {
-        effects: effects
-            .iter()
-            .map(|b| b.effect.effect(&b.values, frame))
-            .collect(),
+        effects: crate::candidates::compose(
+            effects.iter().map(|b| (b.effect, &b.values[..])),
+            frame,
+        ),
         ..Default::default()
     }
 }

@@ -252,6 +252,18 @@ impl Candidate {
     }
 }
 
+/// The effects of `list` (each a candidate at its parameter values), in the order they are set
+/// up: a stiffness field first, so that effects built on the springs' stiffness (bending,
+/// [`crate::forces::BendingSprings`]) see it; the rest in the order given.
+pub(crate) fn compose<'a>(
+    list: impl IntoIterator<Item = (Candidate, &'a [f64])>,
+    frame: &MaterialFrame,
+) -> Vec<Box<dyn Effect>> {
+    let mut list: Vec<(Candidate, &[f64])> = list.into_iter().collect();
+    list.sort_by_key(|(c, _)| *c != Candidate::StiffnessHeterogeneity);
+    list.into_iter().map(|(c, v)| c.effect(v, frame)).collect()
+}
+
 /// Where each tracked particle lies on the object, shared by every episode of a dataset (the
 /// tracked particles are the same material points in every episode).
 #[derive(Clone, Debug, PartialEq)]
@@ -485,19 +497,16 @@ impl Family for CandidateFamily {
     }
     fn build(&self, real: &[f64]) -> (SpringParams, BackboneOptions) {
         let (params, values) = self.split(real);
-        let mut effects = Vec::with_capacity(self.base_effects.len() + 1);
+        let mut list = Vec::with_capacity(self.base_effects.len() + 1);
         let mut at = 0;
         for b in &self.base_effects {
-            let n = b.values.len();
-            effects.push(
-                b.effect
-                    .effect(values.get(at..).unwrap_or(&[]), &self.frame),
-            );
-            at += n;
+            list.push((b.effect, values.get(at..).unwrap_or(&[])));
+            at += b.values.len();
         }
         if let Some(c) = self.candidate {
-            effects.push(c.effect(values.get(at..).unwrap_or(&[]), &self.frame));
+            list.push((c, values.get(at..).unwrap_or(&[])));
         }
+        let mut effects = compose(list, &self.frame);
         if let Some(f) = &self.field {
             effects.push(Box::new(springs::StiffnessField {
                 log_factor: f.clone(),

@@ -279,13 +279,24 @@ impl StrainStiffening {
 /// Bending springs: extra springs of stiffness `κ k` between particles whose rest distance is
 /// in `(threshold, 2 threshold]` (the second ring of neighbours), at most
 /// [`BENDING_PER_PARTICLE`] nearest per particle.
+///
+/// A bending spring follows the material at its ends: `k` is scaled by the geometric mean of
+/// its two particles' factors, each the mean factor (spring stiffness over the fitted
+/// stiffness) of the backbone's springs at that particle when this effect is set up. So a
+/// [`StiffnessGradient`] set up before it scales the bending of its soft and stiff parts as it
+/// scales their springs, as a material field does (the reference world scales its bending
+/// stencils with its links; until session 79 the bending springs ignored the field); without
+/// one every factor is exactly 1. [`crate::Candidate`] compositions set the field up
+/// first; `refine`'s per-particle field (`springs::StiffnessField`) comes last, so refined
+/// models keep the bending they were fitted with.
 #[derive(Debug, Clone, Default)]
 pub struct BendingSprings {
     /// Relative stiffness κ of the bending springs (0: none).
     pub relative_stiffness: f32,
     pairs: Vec<[u32; 2]>,
     rest: Vec<f32>,
-    stiffness: f32,
+    /// Per pair, N/m.
+    stiffness: Vec<f32>,
 }
 
 /// Most bending springs started from one particle.
@@ -331,13 +342,38 @@ impl Effect for BendingSprings {
             .iter()
             .map(|[a, b]| x[*a as usize].distance(x[*b as usize]))
             .collect();
-        self.stiffness = self.relative_stiffness.max(0.0) * model.params.stiffness;
+        let k0 = model.params.stiffness;
+        let (mut sum, mut count) = (vec![0.0f32; x.len()], vec![0u32; x.len()]);
+        for (k, [a, b]) in model.stiffness.iter().zip(model.springs) {
+            for i in [*a as usize, *b as usize] {
+                sum[i] += if k0 > 0.0 { *k / k0 } else { 1.0 };
+                count[i] += 1;
+            }
+        }
+        // Unchanged springs give exactly 1 (a sum of ones over their count).
+        let factor = |i: usize| match count[i] {
+            0 => 1.0,
+            c => sum[i] / c as f32,
+        };
+        let base = self.relative_stiffness.max(0.0) * k0;
+        self.stiffness = self
+            .pairs
+            .iter()
+            .map(|[a, b]| {
+                let (fa, fb) = (factor(*a as usize), factor(*b as usize));
+                if fa == fb {
+                    base * fa
+                } else {
+                    base * (fa * fb).sqrt()
+                }
+            })
+            .collect();
         Ok(())
     }
     fn stability(&self, _backbone: &Backbone, row: &mut [f32], _damping: &mut [f32]) {
-        for [a, b] in &self.pairs {
-            row[*a as usize] += 2.0 * self.stiffness;
-            row[*b as usize] += 2.0 * self.stiffness;
+        for ([a, b], k) in self.pairs.iter().zip(&self.stiffness) {
+            row[*a as usize] += 2.0 * k;
+            row[*b as usize] += 2.0 * k;
         }
     }
     fn add_forces(
@@ -347,15 +383,15 @@ impl Effect for BendingSprings {
         _r: &[f32],
         force: &mut [Vec3A],
     ) {
-        if self.stiffness == 0.0 {
+        if self.relative_stiffness <= 0.0 {
             return;
         }
-        for ([a, b], l0) in self.pairs.iter().zip(&self.rest) {
+        for (([a, b], l0), k) in self.pairs.iter().zip(&self.rest).zip(&self.stiffness) {
             let (a, b) = (*a as usize, *b as usize);
             let d = ctx.x[b] - ctx.x[a];
             let l = d.length();
             if l > 0.0 {
-                let f = d * (self.stiffness * (l - l0) / l);
+                let f = d * (k * (l - l0) / l);
                 force[a] += f;
                 force[b] -= f;
             }
@@ -371,10 +407,10 @@ impl Effect for BendingSprings {
         grad_x: &mut [Vec3A],
         _gv: &mut [Vec3A],
     ) {
-        if self.stiffness == 0.0 {
+        if self.relative_stiffness <= 0.0 {
             return;
         }
-        for ([a, b], l0) in self.pairs.iter().zip(&self.rest) {
+        for (([a, b], l0), k) in self.pairs.iter().zip(&self.rest).zip(&self.stiffness) {
             let (a, b) = (*a as usize, *b as usize);
             let d = ctx.x[b] - ctx.x[a];
             let l = d.length();
@@ -384,7 +420,7 @@ impl Effect for BendingSprings {
                 let u = d / l;
                 let dl = lambda[b] - lambda[a];
                 let along = u * u.dot(dl);
-                let gd = self.stiffness * ((1.0 - l0 / l) * (dl - along) + along);
+                let gd = *k * ((1.0 - l0 / l) * (dl - along) + along);
                 grad_x[a] += gd;
                 grad_x[b] -= gd;
             }

@@ -1,0 +1,100 @@
+//! The stiffness field's composition with bending.
+
+use std::sync::Arc;
+
+use gap::forces::{BendingSprings, StiffnessGradient};
+use gap::{BaseEffect, MaterialFrame};
+use glam::Vec3;
+use springs::{Backbone, BackboneOptions, Effect, ModelSetup, SimConfig, SpringParams};
+
+/// A 10 x 2 strip, 1 cm apart, and its backbone parameters.
+fn strip() -> (Vec<Vec3>, SpringParams) {
+    let x = (0..20)
+        .map(|i| Vec3::new(0.01 * (i / 2) as f32, 0.01 * (i % 2) as f32, 0.1))
+        .collect();
+    let params = SpringParams {
+        stiffness: 1000.0,
+        damping: 1.0,
+        threshold: 0.015,
+        max_springs: 8,
+        ground_friction: 0.5,
+    };
+    (x, params)
+}
+
+/// Each particle's bending row in the stability bound after `effects` are set up in order.
+fn bending_rows(effects: &mut [Box<dyn Effect>], bending_at: usize) -> Vec<f32> {
+    let (x, params) = strip();
+    let held = vec![-1; x.len()];
+    let bb = Backbone::with_options(
+        &x,
+        &held,
+        params,
+        SimConfig::default(),
+        BackboneOptions::default(),
+    )
+    .unwrap();
+    let springs: Vec<[u32; 2]> = bb.springs().to_vec();
+    let mut rest: Vec<f32> = bb.rest_lengths().to_vec();
+    let mut stiffness = vec![params.stiffness; springs.len()];
+    let mut damping = vec![params.damping; springs.len()];
+    let mut masses = vec![0.01; x.len()];
+    for e in effects.iter_mut() {
+        e.setup(&mut ModelSetup {
+            rest_positions: &x,
+            held: &held,
+            params: &params,
+            springs: &springs,
+            rest_lengths: &mut rest,
+            stiffness: &mut stiffness,
+            damping: &mut damping,
+            masses: &mut masses,
+        })
+        .unwrap();
+    }
+    let (mut row, mut d) = (vec![0.0; x.len()], vec![0.0; x.len()]);
+    effects[bending_at].stability(&bb, &mut row, &mut d);
+    row
+}
+
+#[test]
+fn bending_follows_a_stiffness_field_set_up_before_it() {
+    let u: Vec<f32> = (0..20).map(|i| (i / 2) as f32 / 4.5 - 1.0).collect();
+    let field = |slope| -> Box<dyn Effect> {
+        Box::new(StiffnessGradient {
+            slope,
+            material: Arc::new(u.clone()),
+        })
+    };
+    let plain = bending_rows(&mut [Box::new(BendingSprings::new(0.2))], 0);
+    // Neutral field: every factor exactly 1, the same bending bit for bit.
+    let neutral = bending_rows(&mut [field(0.0), Box::new(BendingSprings::new(0.2))], 1);
+    assert_eq!(plain, neutral);
+    // A field that softens the high-u end and stiffens the low-u end by e^8 at the extremes:
+    // the bending there follows it, by orders of magnitude both ways.
+    let graded = bending_rows(&mut [field(-8.0), Box::new(BendingSprings::new(0.2))], 1);
+    assert!(
+        graded[19] < 1e-2 * plain[19],
+        "{} vs {}",
+        graded[19],
+        plain[19]
+    );
+    assert!(graded[0] > 1e2 * plain[0], "{} vs {}", graded[0], plain[0]);
+    // Set up after the bending springs, the field does not reach them.
+    let late = bending_rows(&mut [Box::new(BendingSprings::new(0.2)), field(-8.0)], 0);
+    assert_eq!(plain, late);
+}
+
+#[test]
+fn compositions_set_the_stiffness_field_up_first() {
+    let (x, _) = strip();
+    let frame = MaterialFrame::new(&x, Vec3::ZERO).unwrap();
+    let effects =
+        BaseEffect::parse_list("bending=0.1,drag=0.2,stiffness-heterogeneity=-1.5").unwrap();
+    let names: Vec<String> = gap::backbone_options(&effects, &frame)
+        .effects
+        .iter()
+        .map(|e| e.name().to_string())
+        .collect();
+    assert_eq!(names, ["stiffness-heterogeneity", "bending", "drag"]);
+}
