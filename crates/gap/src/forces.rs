@@ -359,14 +359,7 @@ impl Effect for BendingSprings {
         self.stiffness = self
             .pairs
             .iter()
-            .map(|[a, b]| {
-                let (fa, fb) = (factor(*a as usize), factor(*b as usize));
-                if fa == fb {
-                    base * fa
-                } else {
-                    base * (fa * fb).sqrt()
-                }
-            })
+            .map(|[a, b]| base * (factor(*a as usize) * factor(*b as usize)).sqrt())
             .collect();
         Ok(())
     }
