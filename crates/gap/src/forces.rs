@@ -286,9 +286,10 @@ impl StrainStiffening {
 /// [`StiffnessGradient`] set up before it scales the bending of its soft and stiff parts as it
 /// scales their springs, as a material field does (the reference world scales its bending
 /// stencils with its links; until session 79 the bending springs ignored the field); without
-/// one every factor is exactly 1. [`crate::Candidate`] compositions set the field up
-/// first; `refine`'s per-particle field (`springs::StiffnessField`) comes last, so refined
-/// models keep the bending they were fitted with.
+/// one every factor is exactly 1. Models built from [`crate::Candidate`]s (the refits,
+/// [`crate::backbone_options`]) set the field up first; `refine`'s per-particle field
+/// (`springs::StiffnessField`) comes last, so refined models keep the bending they were
+/// fitted with.
 #[derive(Debug, Clone, Default)]
 pub struct BendingSprings {
     /// Relative stiffness κ of the bending springs (0: none).
