@@ -219,10 +219,7 @@ impl Candidate {
                 slope: f(0),
                 material: frame.coordinate.clone(),
             }),
-            Candidate::NonlinearElasticity => Box::new(StrainStiffening {
-                beta: f(0),
-                gamma: 1.0 - f(1),
-            }),
+            Candidate::NonlinearElasticity => Box::new(stiffening(v)),
             Candidate::Bending => Box::new(BendingSprings::new(f(0))),
             Candidate::Friction => Box::new(StickSlipFriction {
                 static_excess: f(0),
@@ -254,14 +251,39 @@ impl Candidate {
 
 /// The effects of `list` (each a candidate at its parameter values), in the order they are set
 /// up: a stiffness field first, so that effects built on the springs' stiffness (bending,
-/// [`crate::forces::BendingSprings`]) see it; the rest in the order given.
+/// [`crate::forces::BendingSprings`]) see it; the rest in the order given. Bending springs
+/// also follow the list's spring law (`nonlinear-elasticity`), when it has one.
 pub(crate) fn compose<'a>(
     list: impl IntoIterator<Item = (Candidate, &'a [f64])>,
     frame: &MaterialFrame,
 ) -> Vec<Box<dyn Effect>> {
     let mut list: Vec<(Candidate, &[f64])> = list.into_iter().collect();
     list.sort_by_key(|(c, _)| *c != Candidate::StiffnessHeterogeneity);
-    list.into_iter().map(|(c, v)| c.effect(v, frame)).collect()
+    let law = list
+        .iter()
+        .find(|(c, _)| *c == Candidate::NonlinearElasticity)
+        .map(|(_, v)| stiffening(v));
+    list.into_iter()
+        .map(|(c, v)| match (c, law) {
+            (Candidate::Bending, Some(law)) => {
+                Box::new(BendingSprings::new(value(v, 0)).with_stiffening(law))
+            }
+            _ => c.effect(v, frame),
+        })
+        .collect()
+}
+
+/// Parameter `i` of `v`, 0 when absent.
+fn value(v: &[f64], i: usize) -> f32 {
+    v.get(i).copied().unwrap_or(0.0) as f32
+}
+
+/// The `nonlinear-elasticity` candidate's spring law at values `v`.
+fn stiffening(v: &[f64]) -> StrainStiffening {
+    StrainStiffening {
+        beta: value(v, 0),
+        gamma: 1.0 - value(v, 1),
+    }
 }
 
 /// Where each tracked particle lies on the object, shared by every episode of a dataset (the

@@ -290,10 +290,17 @@ impl StrainStiffening {
 /// [`crate::backbone_options`]) set the field up first; `refine`'s per-particle field
 /// (`springs::StiffnessField`) comes last, so refined models keep the bending they were
 /// fitted with.
+///
+/// They follow the composition's spring law too: with a [`StrainStiffening`] (the
+/// `nonlinear-elasticity` candidate) in the same composition, each bending spring stiffens in
+/// tension and softens in compression as the backbone's springs do (until session 80 they
+/// stayed linear, and held a body that the world lets give way in compression).
 #[derive(Debug, Clone, Default)]
 pub struct BendingSprings {
     /// Relative stiffness κ of the bending springs (0: none).
     pub relative_stiffness: f32,
+    /// The spring law of the composition, when it has one (`None`: linear springs).
+    pub stiffening: Option<StrainStiffening>,
     pairs: Vec<[u32; 2]>,
     rest: Vec<f32>,
     /// Per pair, N/m.
@@ -310,6 +317,12 @@ impl BendingSprings {
             relative_stiffness,
             ..Default::default()
         }
+    }
+
+    /// The same springs following the spring law `stiffening`.
+    pub fn with_stiffening(mut self, stiffening: StrainStiffening) -> Self {
+        self.stiffening = Some(stiffening);
+        self
     }
 }
 
@@ -365,9 +378,10 @@ impl Effect for BendingSprings {
         Ok(())
     }
     fn stability(&self, _backbone: &Backbone, row: &mut [f32], _damping: &mut [f32]) {
+        let factor = 1.0 + self.stiffening.map_or(0.0, |s| s.tangent_factor().max(0.0));
         for ([a, b], k) in self.pairs.iter().zip(&self.stiffness) {
-            row[*a as usize] += 2.0 * k;
-            row[*b as usize] += 2.0 * k;
+            row[*a as usize] += 2.0 * factor * k;
+            row[*b as usize] += 2.0 * factor * k;
         }
     }
     fn add_forces(
@@ -385,14 +399,23 @@ impl Effect for BendingSprings {
             let d = ctx.x[b] - ctx.x[a];
             let l = d.length();
             if l > 0.0 {
-                let f = d * (k * (l - l0) / l);
+                let dl = l - l0;
+                let extra = match &self.stiffening {
+                    Some(s) if *l0 > 0.0 => s.extra_force(*k, dl, dl / l0),
+                    _ => 0.0,
+                };
+                let f = d * ((k * dl + extra) / l);
                 force[a] += f;
                 force[b] -= f;
             }
         }
     }
     fn adjoint(&self) -> EffectAdjoint {
-        EffectAdjoint::Transposed
+        // `force_vjp` is the linear springs' transpose; a spring law's Jacobian differs.
+        match self.stiffening {
+            None => EffectAdjoint::Transposed,
+            Some(_) => EffectAdjoint::HeldFixed,
+        }
     }
     fn force_vjp(
         &self,

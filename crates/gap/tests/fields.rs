@@ -1,11 +1,13 @@
-//! The stiffness field's composition with bending.
+//! The material laws' composition with bending: a stiffness field and a spring law.
 
 use std::sync::Arc;
 
 use gap::forces::{BendingSprings, StiffnessGradient};
 use gap::{BaseEffect, MaterialFrame};
-use glam::Vec3;
-use springs::{Backbone, BackboneOptions, Effect, ModelSetup, SimConfig, SpringParams};
+use glam::{Vec3, Vec3A};
+use springs::{
+    Backbone, BackboneOptions, Effect, ModelSetup, SimConfig, SpringParams, SubstepContext,
+};
 
 /// A 10 x 2 strip, 1 cm apart, and its backbone parameters.
 fn strip() -> (Vec<Vec3>, SpringParams) {
@@ -97,4 +99,94 @@ fn compositions_set_the_stiffness_field_up_first() {
         .map(|e| e.name().to_string())
         .collect();
     assert_eq!(names, ["stiffness-heterogeneity", "bending", "drag"]);
+}
+
+/// The bending springs' forces (N) on the strip scaled uniformly by `stretch` about its first
+/// particle, built from the base-effect list `list` (set up in the composition's order).
+fn bending_forces(list: &str, stretch: f32) -> (Vec<Vec3A>, Vec<f32>) {
+    let (x, params) = strip();
+    let frame = MaterialFrame::new(&x, Vec3::ZERO).unwrap();
+    let mut effects = gap::backbone_options(&BaseEffect::parse_list(list).unwrap(), &frame).effects;
+    let held = vec![-1; x.len()];
+    let bb = Backbone::with_options(
+        &x,
+        &held,
+        params,
+        SimConfig::default(),
+        BackboneOptions::default(),
+    )
+    .unwrap();
+    let springs: Vec<[u32; 2]> = bb.springs().to_vec();
+    let mut rest: Vec<f32> = bb.rest_lengths().to_vec();
+    let mut stiffness = vec![params.stiffness; springs.len()];
+    let mut damping = vec![params.damping; springs.len()];
+    let mut masses = vec![0.01; x.len()];
+    for e in effects.iter_mut() {
+        e.setup(&mut ModelSetup {
+            rest_positions: &x,
+            held: &held,
+            params: &params,
+            springs: &springs,
+            rest_lengths: &mut rest,
+            stiffness: &mut stiffness,
+            damping: &mut damping,
+            masses: &mut masses,
+        })
+        .unwrap();
+    }
+    let bending = effects.iter().find(|e| e.name() == "bending").unwrap();
+    let moved: Vec<Vec3A> = x
+        .iter()
+        .map(|p| Vec3A::from(x[0] + (*p - x[0]) * stretch))
+        .collect();
+    let still = vec![Vec3A::ZERO; x.len()];
+    let ctx = SubstepContext {
+        backbone: &bb,
+        dt: 1e-4,
+        substep: 0,
+        x: &moved,
+        v: &still,
+        grippers: &[],
+        gripper_velocities: &[],
+        closed: &[],
+    };
+    let mut force = vec![Vec3A::ZERO; x.len()];
+    bending.add_forces(&ctx, &mut *bending.new_state(&bb), &rest, &mut force);
+    let (mut row, mut d) = (vec![0.0; x.len()], vec![0.0; x.len()]);
+    bending.stability(&bb, &mut row, &mut d);
+    (force, row)
+}
+
+/// Whether `a ≈ r b` component-wise, relative to the largest force.
+fn scaled(a: &[Vec3A], b: &[Vec3A], r: f32) -> bool {
+    let top = b.iter().map(|f| f.length()).fold(0.0, f32::max);
+    top > 0.0
+        && a.iter()
+            .zip(b)
+            .all(|(p, q)| (*p - *q * r).length() <= 1e-4 * top * r.max(1.0))
+}
+
+#[test]
+fn bending_follows_the_compositions_spring_law() {
+    // Compressed by 2 %: the bending springs soften to the law's compression ratio.
+    let (plain, plain_row) = bending_forces("bending=0.2", 0.98);
+    let (soft, soft_row) = bending_forces("bending=0.2,nonlinear-elasticity=100:0.05", 0.98);
+    assert!(
+        scaled(&soft, &plain, 0.05),
+        "{:?} vs {:?}",
+        soft[19],
+        plain[19]
+    );
+    // Stretched by 3 % (every pair at strain 0.03): they stiffen by 1 + β ε².
+    let (plain_t, _) = bending_forces("bending=0.2", 1.03);
+    let (stiff, _) = bending_forces("bending=0.2,nonlinear-elasticity=100:0.05", 1.03);
+    assert!(scaled(&stiff, &plain_t, 1.0 + 100.0 * 0.03 * 0.03));
+    // Their stability rows carry the law's largest tangent stiffness, 1 + 3 β ε_max².
+    let tangent = 1.0 + 3.0 * 100.0 * gap::forces::STIFFENING_MAX_STRAIN.powi(2);
+    for (s, p) in soft_row.iter().zip(&plain_row) {
+        assert!((s - tangent * p).abs() <= 1e-5 * tangent * p, "{s} vs {p}");
+    }
+    // At ratio 1 the compressed springs are linear, bit for bit.
+    let (linear, _) = bending_forces("bending=0.2,nonlinear-elasticity=1:1", 0.98);
+    assert_eq!(linear, plain);
 }
