@@ -420,21 +420,16 @@ fn effect_switched_off(real: &[f64], cand: Candidate) -> Vec<f64> {
 }
 
 /// The backbone `base` with its base effects at their given values and `extra` (the
-/// candidate `cand` at values `v`), as the signatures roll it out.
+/// candidate `cand` at values `v`), as the signatures roll it out: composed as the refits
+/// compose it ([`crate::candidates::compose`]).
 fn signature_options(
     base_effects: &[BaseEffect],
     extra: Option<(Candidate, &[f64])>,
     frame: &MaterialFrame,
 ) -> springs::BackboneOptions {
-    let mut effects: Vec<Box<dyn springs::Effect>> = base_effects
-        .iter()
-        .map(|b| b.effect.effect(&b.values, frame))
-        .collect();
-    if let Some((cand, v)) = extra {
-        effects.push(cand.effect(v, frame));
-    }
+    let list = base_effects.iter().map(|b| (b.effect, &b.values[..]));
     springs::BackboneOptions {
-        effects,
+        effects: crate::candidates::compose(list.chain(extra), frame),
         ..Default::default()
     }
 }
