@@ -24,12 +24,15 @@ fn strip() -> (Vec<Vec3>, SpringParams) {
     (x, params)
 }
 
-/// Each particle's bending row in the stability bound after `effects` are set up in order.
-fn bending_rows(effects: &mut [Box<dyn Effect>], bending_at: usize) -> Vec<f32> {
-    let (x, params) = strip();
+/// The strip's plain backbone and its rest lengths after `effects` are set up on it in order.
+fn set_up(
+    effects: &mut [Box<dyn Effect>],
+    x: &[Vec3],
+    params: SpringParams,
+) -> (Backbone, Vec<f32>) {
     let held = vec![-1; x.len()];
     let bb = Backbone::with_options(
-        &x,
+        x,
         &held,
         params,
         SimConfig::default(),
@@ -43,7 +46,7 @@ fn bending_rows(effects: &mut [Box<dyn Effect>], bending_at: usize) -> Vec<f32> 
     let mut masses = vec![0.01; x.len()];
     for e in effects.iter_mut() {
         e.setup(&mut ModelSetup {
-            rest_positions: &x,
+            rest_positions: x,
             held: &held,
             params: &params,
             springs: &springs,
@@ -54,6 +57,13 @@ fn bending_rows(effects: &mut [Box<dyn Effect>], bending_at: usize) -> Vec<f32> 
         })
         .unwrap();
     }
+    (bb, rest)
+}
+
+/// Each particle's bending row in the stability bound after `effects` are set up in order.
+fn bending_rows(effects: &mut [Box<dyn Effect>], bending_at: usize) -> Vec<f32> {
+    let (x, params) = strip();
+    let (bb, _) = set_up(effects, &x, params);
     let (mut row, mut d) = (vec![0.0; x.len()], vec![0.0; x.len()]);
     effects[bending_at].stability(&bb, &mut row, &mut d);
     row
@@ -107,33 +117,7 @@ fn bending_forces(list: &str, stretch: f32) -> (Vec<Vec3A>, Vec<f32>) {
     let (x, params) = strip();
     let frame = MaterialFrame::new(&x, Vec3::ZERO).unwrap();
     let mut effects = gap::backbone_options(&BaseEffect::parse_list(list).unwrap(), &frame).effects;
-    let held = vec![-1; x.len()];
-    let bb = Backbone::with_options(
-        &x,
-        &held,
-        params,
-        SimConfig::default(),
-        BackboneOptions::default(),
-    )
-    .unwrap();
-    let springs: Vec<[u32; 2]> = bb.springs().to_vec();
-    let mut rest: Vec<f32> = bb.rest_lengths().to_vec();
-    let mut stiffness = vec![params.stiffness; springs.len()];
-    let mut damping = vec![params.damping; springs.len()];
-    let mut masses = vec![0.01; x.len()];
-    for e in effects.iter_mut() {
-        e.setup(&mut ModelSetup {
-            rest_positions: &x,
-            held: &held,
-            params: &params,
-            springs: &springs,
-            rest_lengths: &mut rest,
-            stiffness: &mut stiffness,
-            damping: &mut damping,
-            masses: &mut masses,
-        })
-        .unwrap();
-    }
+    let (bb, rest) = set_up(&mut effects, &x, params);
     let bending = effects.iter().find(|e| e.name() == "bending").unwrap();
     let moved: Vec<Vec3A> = x
         .iter()
