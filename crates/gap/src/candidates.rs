@@ -212,7 +212,7 @@ impl Candidate {
 
     /// The effect for parameter values `v` (in the order of [`Candidate::parameters`]).
     pub fn effect(self, v: &[f64], frame: &MaterialFrame) -> Box<dyn Effect> {
-        let f = |i: usize| v.get(i).copied().unwrap_or(0.0) as f32;
+        let f = |i: usize| value(v, i);
         match self {
             Candidate::Drag => Box::new(QuadraticDrag { coefficient: f(0) }),
             Candidate::StiffnessHeterogeneity => Box::new(StiffnessGradient {
