@@ -145,6 +145,41 @@ fn bench(c: &mut Criterion) {
         };
         b.iter(|| hybrid_rollout(&agreeing, &bb, &scene, &history, opts).unwrap())
     });
+    // The forward-only path (`predict_batch`, the fused inference kernels: what interactive
+    // use and the planner run) for one 1000-particle prediction of one step, with the row
+    // networks' shapes: one network, an ensemble of four by the mean (DLO1's and DLO3's rows)
+    // and by the agreement rule (the sloth's).
+    let four = || {
+        ResidualNet::ensemble(
+            (0..4)
+                .map(|seed| ResidualNet::new(&ModelConfig::default(), seed).unwrap())
+                .collect(),
+        )
+        .unwrap()
+    };
+    let forward_only = [
+        (
+            "infer_step",
+            ResidualNet::new(&ModelConfig::default(), 0).unwrap(),
+        ),
+        ("infer_step_ensemble_of_4", four()),
+        (
+            "infer_step_ensemble_of_4_agreement",
+            four().with_ensemble_rule(residual::EnsembleRule::Agreement),
+        ),
+    ];
+    for (name, n) in &forward_only {
+        let job = residual::PredictJob {
+            backbone: &bb,
+            init: &scene.init,
+            history: &history,
+            actions: &scene.actions,
+            steps: 1,
+        };
+        g.bench_function(*name, |b| {
+            b.iter(|| residual::predict_batch(n, &[job]).unwrap())
+        });
+    }
     g.sample_size(10);
     g.bench_function("train_rollout_5_steps_fwd_bwd", |b| {
         let opts = RolloutOptions {
