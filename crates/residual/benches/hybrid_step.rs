@@ -123,12 +123,15 @@ fn bench(c: &mut Criterion) {
         });
     }
     // An ensemble evaluates every member each step (`docs/residual.md`, "Ensembles").
-    let ensemble = ResidualNet::ensemble(
-        (0..4)
-            .map(|seed| ResidualNet::new(&ModelConfig::default(), seed).unwrap())
-            .collect(),
-    )
-    .unwrap();
+    let four = || {
+        ResidualNet::ensemble(
+            (0..4)
+                .map(|seed| ResidualNet::new(&ModelConfig::default(), seed).unwrap())
+                .collect(),
+        )
+        .unwrap()
+    };
+    let ensemble = four();
     g.bench_function("hybrid_step_ensemble_of_4", |b| {
         let opts = RolloutOptions {
             steps: 1,
@@ -149,14 +152,6 @@ fn bench(c: &mut Criterion) {
     // use and the planner run) for one 1000-particle prediction of one step, with the row
     // networks' shapes: one network, an ensemble of four by the mean (DLO1's and DLO3's rows)
     // and by the agreement rule (the sloth's).
-    let four = || {
-        ResidualNet::ensemble(
-            (0..4)
-                .map(|seed| ResidualNet::new(&ModelConfig::default(), seed).unwrap())
-                .collect(),
-        )
-        .unwrap()
-    };
     let forward_only = [
         (
             "infer_step",
