@@ -163,14 +163,14 @@ fn bench(c: &mut Criterion) {
             four().with_ensemble_rule(residual::EnsembleRule::Agreement),
         ),
     ];
+    let job = residual::PredictJob {
+        backbone: &bb,
+        init: &scene.init,
+        history: &history,
+        actions: &scene.actions,
+        steps: 1,
+    };
     for (name, n) in &forward_only {
-        let job = residual::PredictJob {
-            backbone: &bb,
-            init: &scene.init,
-            history: &history,
-            actions: &scene.actions,
-            steps: 1,
-        };
         g.bench_function(*name, |b| {
             b.iter(|| residual::predict_batch(n, &[job]).unwrap())
         });
