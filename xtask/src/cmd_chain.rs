@@ -325,6 +325,7 @@ fn test_scores(
             no_emd: false,
             visual: false,
             horizon: None,
+            autograd: false,
         })?;
         report.metrics["mde_cm"]["mean"]
             .as_f64()

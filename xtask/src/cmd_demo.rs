@@ -104,6 +104,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
             no_emd: false,
             visual: false,
             horizon: None,
+            autograd: false,
         })?;
         // Point clouds of the last predicted step of the first val episode, next to the truth.
         let index = data.split_indices(Split::Val)[0];

@@ -11,7 +11,7 @@ use gap::{BaseEffect, Candidate, DiagnoseConfig, Diagnosis};
 use scene::{Protocol, Scene};
 
 use crate::common::{
-    BackboneFile, ProtocolArg, SceneSetting, SubstepArg, backbone_path, load_scenes,
+    BackboneFile, NetworkPath, ProtocolArg, SceneSetting, SubstepArg, backbone_path, load_scenes,
     predict_tracked, read_backbone, read_residual, scenes,
 };
 use crate::report::write_json;
@@ -312,9 +312,9 @@ pub(crate) fn network_errors(
     let rows: Vec<anyhow::Result<(f64, f64)>> = val
         .par_iter()
         .map(|(i, scene)| {
-            let alone = mde(scene, &predict_tracked(scene, params, options, None, None)?)?;
+            let alone = mde(scene, &predict_tracked(scene, params, options, None, None, NetworkPath::ForwardOnly)?)?;
             let history = residual::History::from_episode(scene, &data.load_episode(*i)?, data.meta.fps)?;
-            let with = match predict_tracked(scene, params, options, Some(net), Some(&history)) {
+            let with = match predict_tracked(scene, params, options, Some(net), Some(&history), NetworkPath::ForwardOnly) {
                 Ok(p) => mde(scene, &p)?,
                 Err(e) => {
                     eprintln!("warning: episode {i}: the hybrid rollout failed ({e:#}); scored as its backbone");

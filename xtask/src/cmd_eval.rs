@@ -11,7 +11,8 @@ use scene::{Protocol, StepErrors};
 use serde::{Deserialize, Serialize};
 
 use crate::common::{
-    ProtocolArg, load_scenes, predict_tracked, read_backbone, read_residual, warn_if_unconnected,
+    NetworkPath, ProtocolArg, load_scenes, predict_tracked, read_backbone, read_residual,
+    warn_if_unconnected,
 };
 use crate::report::{Curve, plot_curves, write_json};
 
@@ -51,6 +52,11 @@ pub struct EvalArgs {
     /// (`eval_pgrd_h<K>_<split>.json`) by default.
     #[arg(long, value_name = "K")]
     pub horizon: Option<usize>,
+    /// Evaluate the residual network through the autograd operations training runs instead of
+    /// the forward-only kernels (two to three times slower; the same up to float rounding):
+    /// reproduces to the digit the numbers documented before session 82, which were made so.
+    #[arg(long)]
+    pub autograd: bool,
 }
 
 /// A metric's summary in cm.
@@ -115,6 +121,10 @@ pub struct EvalReport {
     pub per_episode: Vec<EpisodeScore>,
     /// Rollouts that diverged (scored as missing; the command fails if any does).
     pub diverged: usize,
+    /// How the residual network was evaluated (`forward-only`, or `autograd` with
+    /// `--autograd`); absent for the backbone.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub network_path: Option<&'static str>,
     /// Wall time of the rollouts, s.
     pub rollout_wall_s: f64,
     /// Wall time of the whole command, s.
@@ -194,6 +204,11 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
             .collect::<anyhow::Result<Vec<_>>>()?,
         _ => vec![None; scenes.len()],
     };
+    let path = if args.autograd {
+        NetworkPath::Autograd
+    } else {
+        NetworkPath::ForwardOnly
+    };
     let t_roll = Instant::now();
     type Scored<'a> = (
         Vec<StepErrors>,
@@ -209,6 +224,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
                     params: &backbone.params,
                     options: &options,
                     net: net.as_ref(),
+                    path,
                 };
                 let (errors, l1) = crate::eval_horizon::horizon_errors(
                     &data,
@@ -227,6 +243,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
                 &options,
                 net.as_ref(),
                 history.as_ref(),
+                path,
             )
             .with_context(|| format!("episode {i}"))?;
             let errors = scene::score_steps(scene, &pred, with_emd)?;
@@ -387,6 +404,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
         per_step_cm: per_step,
         per_episode: episode_scores,
         diverged,
+        network_path: net.as_ref().map(|_| path.label()),
         rollout_wall_s,
         wall_s: t0.elapsed().as_secs_f64(),
     };

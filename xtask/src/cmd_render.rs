@@ -20,7 +20,7 @@ use scene::{Protocol, Scene, Window};
 use serde::Serialize;
 use world::TruthGaussians;
 
-use crate::common::{ProtocolArg, predict_tracked, read_backbone, read_residual};
+use crate::common::{NetworkPath, ProtocolArg, predict_tracked, read_backbone, read_residual};
 use crate::report::write_json;
 
 /// Background colour of every render (a neutral grey-blue that white paper and black fur both
@@ -440,6 +440,7 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
         &options,
         net.as_ref(),
         history.as_ref(),
+        NetworkPath::ForwardOnly,
     )
     .with_context(|| format!("{model} rollout of episode {index}"))?;
     let opts = VideoOptions {

@@ -330,21 +330,65 @@ pub fn read_residual(run: &Path) -> anyhow::Result<Option<residual::ResidualNet>
         .with_context(|| format!("loading {}", path.display()))
 }
 
+/// How a residual network is evaluated when nothing needs its gradient.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum NetworkPath {
+    /// Candle's fused forward-only kernels (`residual::predict_batch`), two to three times
+    /// faster (`docs/BENCHMARKS.md`, "Forward-only evaluation").
+    #[default]
+    ForwardOnly,
+    /// The autograd operations training runs (`residual::hybrid_rollout`, `residual::predict`):
+    /// what `eval` ran until session 82, so it reproduces the numbers documented before then
+    /// to the digit. The two agree to float rounding per step (`crates/residual/tests/batch.rs`),
+    /// which contact and friction amplify over a long window (the rope's 37-step episodes:
+    /// up to 0.02 cm per episode, 0.001-0.002 cm on a 20-episode mean).
+    Autograd,
+}
+
+impl NetworkPath {
+    /// The name reports give it.
+    pub fn label(self) -> &'static str {
+        match self {
+            NetworkPath::ForwardOnly => "forward-only",
+            NetworkPath::Autograd => "autograd",
+        }
+    }
+}
+
 /// Rolls the run's model out over `scene`'s window: the backbone with `params`, plus the
-/// residual network when `net` is given (it needs the episode's `history`). Returns the tracked
-/// particles' positions after each step (`scene.window.steps` entries), m.
+/// residual network when `net` is given (it needs the episode's `history`), evaluated by
+/// `path`. Returns the tracked particles' positions after each step (`scene.window.steps`
+/// entries), m.
 pub fn predict_tracked(
     scene: &Scene,
     params: &springs::SpringParams,
     options: &residual::BackboneOptionsFn,
     net: Option<&residual::ResidualNet>,
     history: Option<&residual::History>,
+    path: NetworkPath,
 ) -> anyhow::Result<Vec<Vec<glam::Vec3>>> {
     Ok(match (net, history) {
         (Some(net), Some(history)) => {
             let bb = scene.backbone(params, &scene.sim_config(), options())?;
-            residual::hybrid_rollout(net, &bb, scene, history, Default::default())?
-                .positions
+            let positions = match path {
+                NetworkPath::ForwardOnly => {
+                    let job = residual::PredictJob {
+                        backbone: &bb,
+                        init: &scene.init,
+                        history,
+                        actions: &scene.actions,
+                        steps: scene.window.steps,
+                    };
+                    let mut results = residual::predict_batch(net, &[job])?;
+                    anyhow::ensure!(results.len() == 1, "one job, {} results", results.len());
+                    results.remove(0)?
+                }
+                NetworkPath::Autograd => {
+                    residual::hybrid_rollout(net, &bb, scene, history, Default::default())?
+                        .positions
+                }
+            };
+            positions
                 .into_iter()
                 .map(|mut p| {
                     p.truncate(scene.tracked);

@@ -248,9 +248,10 @@ pub(crate) fn backbone_loss(
 /// the hybrid model without ground truth, e.g. as a planner's forward model. Held particles come
 /// from [`Backbone::held`], the step length from the backbone's configuration.
 ///
-/// This runs the network through the same autograd operations as [`hybrid_rollout`] (its
-/// numbers are `eval`'s); [`crate::predict_batch`] with one job predicts the same up to float
-/// rounding through forward-only kernels, two to three times faster (`docs/BENCHMARKS.md`).
+/// This runs the network through the same autograd operations as [`hybrid_rollout`] (what
+/// `eval --autograd` scores); [`crate::predict_batch`] with one job predicts the same up to
+/// float rounding through forward-only kernels, two to three times faster, and is what `eval`
+/// scores by default (`docs/BENCHMARKS.md`).
 ///
 /// ```no_run
 /// # fn main() -> Result<(), residual::ResidualError> {

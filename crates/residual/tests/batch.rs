@@ -4,7 +4,10 @@
 mod common;
 
 use glam::Vec3;
-use residual::{History, ModelConfig, PredictJob, ResidualNet, predict, predict_batch};
+use residual::{
+    Combine, EncoderKind, History, ModelConfig, PredictJob, ResidualKind, ResidualNet, predict,
+    predict_batch,
+};
 use springs::{Actions, Backbone, State};
 
 /// `actions` with every gripper moved by `k · step` at frame `k` (another candidate path).
@@ -126,7 +129,33 @@ fn a_batch_predicts_what_each_rollout_predicts_alone() {
         held_residual: true,
         ..ModelConfig::tiny()
     };
-    for cfg in [ModelConfig::tiny(), ModelConfig::default(), gripper, held] {
+    // The ablations `eval` scores through this path too (`docs/residual.md`, "Ablations").
+    let ablations = [
+        ModelConfig {
+            encoder: EncoderKind::Pointnet,
+            ..ModelConfig::tiny()
+        },
+        ModelConfig {
+            decoder: false,
+            ..ModelConfig::tiny()
+        },
+        ModelConfig {
+            combine: Combine::None,
+            ..ModelConfig::tiny()
+        },
+        ModelConfig {
+            combine: Combine::Add,
+            ..ModelConfig::tiny()
+        },
+        ModelConfig {
+            residual: ResidualKind::Position,
+            ..ModelConfig::tiny()
+        },
+    ];
+    for cfg in [ModelConfig::tiny(), ModelConfig::default(), gripper, held]
+        .into_iter()
+        .chain(ablations)
+    {
         let net = ResidualNet::new(&cfg, 4).unwrap();
         assert_batch_matches(&net, &[&a], &[5]);
         // Different clouds, point counts, actions and lengths (the short one leaves early).
