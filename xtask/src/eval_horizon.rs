@@ -78,9 +78,6 @@ pub fn horizon_errors(
         windows.push((start, at, own));
     }
     let predictions: Vec<Vec<Vec<glam::Vec3>>> = match model.net {
-        // All starts at once through the forward-only kernels: one network call per step for
-        // several starts (`residual::predict_batch`; each start's prediction is its own
-        // `residual::predict` up to float rounding).
         Some(net) => {
             let histories = windows
                 .iter()
@@ -98,7 +95,8 @@ pub fn horizon_errors(
                 })
                 .collect();
             let results: Vec<residual::JobResult> = match model.path {
-                // All starts at once: one network call per step for several starts.
+                // All starts at once: one network call per step for several starts (each
+                // start's prediction is its own `residual::predict` up to float rounding).
                 crate::common::NetworkPath::ForwardOnly => residual::predict_batch(net, &jobs)?,
                 crate::common::NetworkPath::Autograd => jobs
                     .iter()
