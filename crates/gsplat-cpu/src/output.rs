@@ -64,28 +64,31 @@ pub fn side_by_side(left: &Image, right: &Image, gap_px: u32) -> RgbImage {
     grid(&[vec![l.clone(), r]], gap_px).unwrap_or(l)
 }
 
-/// Writes an 8-bit RGB PNG.
+/// Writes an 8-bit RGB PNG, atomically (a temporary file renamed into place; missing parent
+/// directories are created).
 ///
 /// # Errors
 /// [`Error::Io`] or [`Error::Encode`].
 pub fn write_png(path: impl AsRef<Path>, picture: &RgbImage) -> Result<(), Error> {
     let path = path.as_ref();
-    let file = create(path)?;
-    PngEncoder::new(BufWriter::new(file))
-        .write_image(
-            picture.as_raw(),
-            picture.width(),
-            picture.height(),
-            image::ExtendedColorType::Rgb8,
-        )
-        .map_err(|source| Error::Encode {
-            path: path.to_path_buf(),
-            source,
-        })
+    write_atomically(path, |w| {
+        PngEncoder::new(w)
+            .write_image(
+                picture.as_raw(),
+                picture.width(),
+                picture.height(),
+                image::ExtendedColorType::Rgb8,
+            )
+            .map_err(|source| Error::Encode {
+                path: path.to_path_buf(),
+                source,
+            })
+    })
 }
 
 /// Writes an animated GIF that loops forever, showing each frame for `frame_ms` milliseconds.
 /// Colours are quantised to GIF's 256-colour palettes by the `image` crate (deterministic).
+/// Written atomically, as [`write_png`].
 ///
 /// # Errors
 /// [`Error::ImageSize`] for no frames or frames of different sizes, [`Error::Io`] or
@@ -106,21 +109,86 @@ pub fn write_gif(path: impl AsRef<Path>, frames: &[RgbImage], frame_ms: u32) -> 
         path: path.to_path_buf(),
         source,
     };
-    let file = create(path)?;
-    let mut enc = GifEncoder::new_with_speed(BufWriter::new(file), 10);
-    enc.set_repeat(Repeat::Infinite).map_err(encode_err)?;
-    let delay = Delay::from_numer_denom_ms(frame_ms, 1);
-    for f in frames {
-        let rgba = DynamicImage::ImageRgb8(f.clone()).into_rgba8();
-        enc.encode_frame(Frame::from_parts(rgba, 0, 0, delay))
-            .map_err(encode_err)?;
-    }
-    Ok(())
+    write_atomically(path, |w| {
+        let mut enc = GifEncoder::new_with_speed(w, 10);
+        enc.set_repeat(Repeat::Infinite).map_err(encode_err)?;
+        let delay = Delay::from_numer_denom_ms(frame_ms, 1);
+        for f in frames {
+            let rgba = DynamicImage::ImageRgb8(f.clone()).into_rgba8();
+            enc.encode_frame(Frame::from_parts(rgba, 0, 0, delay))
+                .map_err(encode_err)?;
+        }
+        Ok(())
+    })
 }
 
-fn create(path: &Path) -> Result<std::fs::File, Error> {
-    std::fs::File::create(path).map_err(|source| Error::Io {
+/// Writes `path` through `write` atomically: into a temporary file beside it (creating missing
+/// parent directories), flushed to disk and renamed over `path`, so a reader never sees a
+/// half-written picture and a failed or interrupted write leaves the previous file intact.
+pub(crate) fn write_atomically(
+    path: &Path,
+    write: impl FnOnce(&mut BufWriter<std::fs::File>) -> Result<(), Error>,
+) -> Result<(), Error> {
+    let io = |source| Error::Io {
         path: path.to_path_buf(),
         source,
-    })
+    };
+    let Some(name) = path.file_name() else {
+        return Err(io(std::io::Error::new(
+            std::io::ErrorKind::InvalidInput,
+            "not a file path",
+        )));
+    };
+    if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
+        std::fs::create_dir_all(parent).map_err(io)?;
+    }
+    let mut tmp_name = std::ffi::OsString::from(".");
+    tmp_name.push(name);
+    tmp_name.push(format!(".{}.tmp", std::process::id()));
+    let tmp = path.with_file_name(tmp_name);
+    let result = (|| {
+        let mut w = BufWriter::new(std::fs::File::create(&tmp).map_err(io)?);
+        write(&mut w)?;
+        let file = w.into_inner().map_err(|e| io(e.into_error()))?;
+        file.sync_all().map_err(io)?;
+        std::fs::rename(&tmp, path).map_err(io)
+    })();
+    if result.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    result
+}
+
+#[cfg(test)]
+mod tests {
+    use std::io::Write;
+
+    use super::*;
+
+    /// A write that fails half-way leaves the previous file as it was and no temporary file.
+    #[test]
+    fn a_failed_write_keeps_the_previous_file() {
+        let dir = std::env::temp_dir().join(format!("gsplat-atomic-{}", std::process::id()));
+        std::fs::remove_dir_all(&dir).ok();
+        let path = dir.join("picture.png");
+        write_atomically(&path, |w| {
+            w.write_all(b"old").map_err(|e| Error::Io {
+                path: path.clone(),
+                source: e,
+            })
+        })
+        .unwrap();
+        let failed = write_atomically(&path, |w| {
+            w.write_all(b"half a new pict").unwrap();
+            Err(Error::ImageSize("stopped on purpose".into()))
+        });
+        assert!(matches!(failed, Err(Error::ImageSize(_))));
+        assert_eq!(std::fs::read(&path).unwrap(), b"old");
+        assert_eq!(
+            std::fs::read_dir(&dir).unwrap().count(),
+            1,
+            "a temporary file was left"
+        );
+        std::fs::remove_dir_all(&dir).ok();
+    }
 }

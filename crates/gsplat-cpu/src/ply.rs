@@ -7,6 +7,7 @@
 //! `0.5 + C0 · f_dc` with `C0 = 1 / (2 √π)`, clamped below at 0 as 3DGS does. Files with
 //! `red green blue` (0–255) instead of `f_dc_*` are read too.
 
+use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use glam::{Quat, Vec3};
@@ -232,6 +233,7 @@ pub fn parse_ply(bytes: &[u8], path: &Path) -> Result<Gaussians, Error> {
 /// Writes `gaussians` as a binary little-endian 3DGS `.ply` (`x y z f_dc_0..2 opacity
 /// scale_0..2 rot_0..3`, all float), readable by 3DGS viewers. Zero scales are written as
 /// `ln(1e-12)` and opacities are kept inside `[1e-6, 1 − 1e-6]` so the logs stay finite.
+/// Written atomically, as [`crate::write_png`].
 ///
 /// # Errors
 /// Invalid Gaussians or [`Error::Io`].
@@ -277,9 +279,11 @@ pub fn write_ply(path: impl AsRef<Path>, gaussians: &Gaussians) -> Result<(), Er
             bytes.extend_from_slice(&v.to_le_bytes());
         }
     }
-    std::fs::write(path, bytes).map_err(|source| Error::Io {
-        path: PathBuf::from(path),
-        source,
+    crate::output::write_atomically(path, |w| {
+        w.write_all(&bytes).map_err(|source| Error::Io {
+            path: PathBuf::from(path),
+            source,
+        })
     })
 }
 

@@ -225,10 +225,28 @@ fn png_round_trips_and_layouts_place_panels() {
     assert_eq!(back, pair);
     std::fs::remove_file(&path).ok();
     assert!(grid(&[], 2).is_err());
+    // Missing directories are created; a directory that cannot be (its parent is a file) is
+    // an I/O error, not a panic.
+    let nested = temp("nested").join("a").join("pair.png");
+    write_png(&nested, &pair).unwrap();
+    assert_eq!(image::open(&nested).unwrap().into_rgb8(), pair);
+    let names: Vec<_> = std::fs::read_dir(nested.parent().unwrap())
+        .unwrap()
+        .map(|e| e.unwrap().file_name())
+        .collect();
+    assert_eq!(
+        names,
+        vec![std::ffi::OsString::from("pair.png")],
+        "no temporary file left"
+    );
+    std::fs::remove_dir_all(temp("nested")).ok();
+    let blocker = temp("blocker");
+    std::fs::write(&blocker, b"a file").unwrap();
     assert!(matches!(
-        write_png("/nonexistent/dir/x.png", &pair),
+        write_png(blocker.join("x.png"), &pair),
         Err(Error::Io { .. })
     ));
+    std::fs::remove_file(&blocker).ok();
     // Masks: alpha strictly above the threshold.
     let mask = a.mask(gsplat::MASK_THRESHOLD);
     assert_eq!(mask.iter().filter(|m| **m).count(), 5 * 6);
