@@ -711,8 +711,15 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
     let title = format!("{} ({})", data.meta.object, args.data.display());
     write_report(out, &d, &title)?;
     let how = d.how_far.as_ref().map_or(String::new(), |h| {
+        // With `none` / `unknown` this is the best library candidate, which the verdict did
+        // not take: say so, or the line reads as if the effect were added.
+        let what = if h.effect == d.verdict {
+            "adding"
+        } else {
+            "best candidate, not the verdict,"
+        };
         format!(
-            "; adding {}: held-out MDE {:.3} -> {:.3} cm ({:.1}% shrinkage)",
+            "; {what} {}: held-out MDE {:.3} -> {:.3} cm ({:.1}% shrinkage)",
             h.effect,
             h.before.mde_cm,
             h.after.mde_cm,

@@ -313,7 +313,16 @@ pub fn render_html(d: &Diagnosis, title: &str) -> String {
         );
     }
     if let Some(h) = &d.how_far {
-        let _ = write!(body, "<h2>How far: adding {}</h2>", esc(&h.effect));
+        if h.effect == d.verdict {
+            let _ = write!(body, "<h2>How far: adding {}</h2>", esc(&h.effect));
+        } else {
+            // `none` / `unknown`: the top-ranked candidate, shown for reference only.
+            let _ = write!(
+                body,
+                "<h2>How far: adding {}, the best candidate (not the verdict)</h2>",
+                esc(&h.effect)
+            );
+        }
         body += &table(
             &["metric (held-out, cm)", "before", "after", "shrinkage"],
             [

@@ -131,6 +131,16 @@ fn report_json_has_the_documented_schema() {
     let html = gap::render_html(&d, "rope fixture");
     assert!(html.starts_with("<!DOCTYPE html>") && html.contains("<svg"));
     assert!(html.contains("substep rule auto"));
+    // With `none` / `unknown` the "how far" candidate is the top-ranked one, not the verdict,
+    // and the page says so rather than read as if it were added.
+    let how = d.how_far.as_ref().expect("a how-far section");
+    assert_eq!(
+        html.contains("(not the verdict)"),
+        how.effect != d.verdict,
+        "verdict {}, how far {}",
+        d.verdict,
+        how.effect
+    );
     assert!(
         !html.contains("src=") && !html.contains("href="),
         "the page must not load anything"
