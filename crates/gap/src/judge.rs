@@ -147,7 +147,8 @@ impl Diagnosis {
     ///
     /// ```no_run
     /// # fn demo(d: gap::Diagnosis) -> Result<(), gap::GapError> {
-    /// let stricter = gap::VerdictRule { min_shrinkage: 0.07, ..d.config.rule };
+    /// let floor = d.config.rule.min_shrinkage + 0.02;
+    /// let stricter = gap::VerdictRule { min_shrinkage: floor, ..d.config.rule };
     /// println!("{} -> {}", d.verdict, d.rejudge(stricter)?.verdict);
     /// # Ok(()) }
     /// ```
