@@ -53,7 +53,7 @@ pub struct EvalArgs {
     #[arg(long, value_name = "K")]
     pub horizon: Option<usize>,
     /// Evaluate the residual network through the autograd operations training runs instead of
-    /// the forward-only kernels (two to three times slower; the same up to float rounding):
+    /// the forward-only kernels (two to four times slower; the same up to float rounding):
     /// reproduces to the digit the numbers documented before session 82, which were made so.
     #[arg(long)]
     pub autograd: bool,

@@ -333,8 +333,8 @@ pub fn read_residual(run: &Path) -> anyhow::Result<Option<residual::ResidualNet>
 /// How a residual network is evaluated when nothing needs its gradient.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum NetworkPath {
-    /// Candle's fused forward-only kernels (`residual::predict_batch`), two to three times
-    /// faster (`docs/BENCHMARKS.md`, "Forward-only evaluation").
+    /// Candle's fused forward-only kernels (`residual::predict_batch`), two to four times
+    /// faster, the most for ensembles (`docs/BENCHMARKS.md`, "Forward-only evaluation").
     #[default]
     ForwardOnly,
     /// The autograd operations training runs (`residual::hybrid_rollout`, `residual::predict`):

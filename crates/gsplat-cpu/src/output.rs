@@ -125,6 +125,8 @@ pub fn write_gif(path: impl AsRef<Path>, frames: &[RgbImage], frame_ms: u32) -> 
 /// Writes `path` through `write` atomically: into a temporary file beside it (creating missing
 /// parent directories), flushed to disk and renamed over `path`, so a reader never sees a
 /// half-written picture and a failed or interrupted write leaves the previous file intact.
+/// (`dataset::write_atomic` does the same for bytes; the renderer stays free of the data crate
+/// and streams its encoders into the file instead.)
 pub(crate) fn write_atomically(
     path: &Path,
     write: impl FnOnce(&mut BufWriter<std::fs::File>) -> Result<(), Error>,
