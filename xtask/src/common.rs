@@ -331,11 +331,10 @@ pub fn read_residual(run: &Path) -> anyhow::Result<Option<residual::ResidualNet>
 }
 
 /// How a residual network is evaluated when nothing needs its gradient.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum NetworkPath {
     /// Candle's fused forward-only kernels (`residual::predict_batch`), two to four times
     /// faster, the most for ensembles (`docs/BENCHMARKS.md`, "Forward-only evaluation").
-    #[default]
     ForwardOnly,
     /// The autograd operations training runs (`residual::hybrid_rollout`, `residual::predict`):
     /// what `eval` ran until session 82, so it reproduces the numbers documented before then
