@@ -187,6 +187,19 @@ pub fn run(args: &EnsembleArgs) -> anyhow::Result<()> {
     if args.average_weights && args.rule != Rule::Mean {
         bail!("--average-weights makes one network; it takes no --rule");
     }
+    // A member named twice would silently count double in the mean.
+    for (i, m) in args.members.iter().enumerate() {
+        let same = |o: &PathBuf| match (m.canonicalize(), o.canonicalize()) {
+            (Ok(a), Ok(b)) => a == b,
+            _ => m == o,
+        };
+        if args.members[..i].iter().any(same) {
+            bail!(
+                "member {} is named twice; every member counts once",
+                m.display()
+            );
+        }
+    }
     let backbone_run = match &args.backbone_run {
         Some(r) => r.clone(),
         None => args
@@ -345,6 +358,10 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(err.contains("another backbone"), "{err}");
+        let err = run(&args(vec![a.clone(), dir.join("a/../a")]))
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("named twice"), "{err}");
         std::fs::create_dir_all(&out).unwrap();
         std::fs::write(out.join("residual.safetensors"), b"").unwrap();
         let err = run(&args(vec![a.clone()])).unwrap_err().to_string();

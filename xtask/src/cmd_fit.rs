@@ -114,8 +114,8 @@ pub fn run(args: &FitArgs) -> anyhow::Result<BackboneFile> {
         rescore_scenes: args.rescore_scenes,
     };
     anyhow::ensure!(
-        config.population >= 2 && config.samples >= 1,
-        "--population must be >= 2 and --samples >= 1"
+        config.population >= 2 && config.samples >= 1 && config.generations >= 1,
+        "--population must be >= 2, --samples >= 1 and --generations >= 1"
     );
     let checkpoint = args.run.join("fit.checkpoint.json");
     let bar = if args.quiet {
@@ -323,5 +323,24 @@ mod tests {
         assert!(err.contains("diverged") && err.contains("units"), "{err}");
         assert!(!backbone_path(&run_dir).exists());
         std::fs::remove_dir_all(&root).ok();
+    }
+
+    /// Settings that cannot search are refused before any work, not reported as data that no
+    /// parameters simulate.
+    #[test]
+    fn a_fit_that_cannot_search_is_refused_up_front() {
+        let dir = std::env::temp_dir().join(format!("pgrd-fit-settings-{}", std::process::id()));
+        for (population, samples, generations) in [(1, 1, 1), (2, 0, 1), (2, 1, 0)] {
+            let args = FitArgs {
+                population,
+                samples,
+                generations,
+                ..FitArgs::quick_rope_fixture(dir.clone())
+            };
+            let err = run(&args).unwrap_err().to_string();
+            assert!(err.contains("--generations >= 1"), "{err}");
+            assert!(!backbone_path(&dir).exists());
+        }
+        std::fs::remove_dir_all(&dir).ok();
     }
 }

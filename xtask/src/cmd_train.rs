@@ -498,6 +498,8 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
          train into a new run directory",
         args.run.display()
     );
+    // A zero-step run would write the untrained network and report NaN ratios.
+    anyhow::ensure!(args.iterations >= 1, "--iterations must be at least 1");
     // The network's flags (sizes, bound) are checked before any data are read.
     model_config(args)
         .validate()
@@ -1082,6 +1084,8 @@ mod tests {
             assert!(err.contains("channel"), "{err}");
             assert!(!err.contains("no-such-data"), "{err}");
         }
+        let err = format!("{:#}", run(&parse(&["--iterations", "0"])).unwrap_err());
+        assert!(err.contains("--iterations must be at least 1"), "{err}");
     }
 
     #[test]

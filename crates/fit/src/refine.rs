@@ -179,9 +179,13 @@ pub fn refine_stiffness(
             s.tracked
         )));
     }
-    if config.batch == 0 || config.check_every == 0 || config.steps == Some(0) {
+    if config.iterations == 0
+        || config.batch == 0
+        || config.check_every == 0
+        || config.steps == Some(0)
+    {
         return Err(FitError::Config(
-            "batch, check interval and steps must be at least 1".into(),
+            "iterations, batch, check interval and steps must be at least 1".into(),
         ));
     }
     if !(config.learning_rate > 0.0 && config.max_log_factor > 0.0) {

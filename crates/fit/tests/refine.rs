@@ -203,6 +203,10 @@ fn a_resumed_refinement_equals_an_uninterrupted_one() {
     mixed[0].tracked -= 1;
     mixed.extend(scenes(&truth_field(), 1));
     assert!(refine_stiffness(&mixed, &params(), &plain, &cfg(1), None, &mut |_| {}).is_err());
+    // And no iteration at all is a configuration error, not a refinement that kept the zero
+    // field.
+    let err = refine_stiffness(&data, &params(), &plain, &cfg(0), None, &mut |_| {}).unwrap_err();
+    assert!(err.to_string().contains("iterations"), "{err}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
 

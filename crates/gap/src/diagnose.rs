@@ -547,11 +547,12 @@ pub fn diagnose(
     }
     if config.population < 2
         || config.probe_population() < 2
+        || config.generations == 0
         || config.samples == 0
         || config.resamples == 0
     {
         return Err(GapError::Config(
-            "population >= 2 (the probe's too), samples >= 1 and resamples >= 1 are needed".into(),
+            "population >= 2 (the probe's too), generations >= 1, samples >= 1 and resamples >= 1 are needed".into(),
         ));
     }
     config.rule.check()?;

@@ -301,10 +301,21 @@ fn the_probe_population_widens_the_probe_alone() {
     // A one-candidate generation cannot adapt a search: refused, not run.
     let one = DiagnoseConfig {
         probe_population: 1,
-        ..narrow
+        ..narrow.clone()
     };
     let r = gap::diagnose(&train, &val, &base, &one, &mut |_| {});
     assert!(matches!(r, Err(gap::GapError::Config(_))), "{r:?}");
+    // Nor can no generation at all: every refit would keep its start, and the ranking would
+    // compare starting strengths, not refits.
+    let none = DiagnoseConfig {
+        generations: 0,
+        ..narrow
+    };
+    let r = gap::diagnose(&train, &val, &base, &none, &mut |_| {});
+    assert!(
+        matches!(&r, Err(gap::GapError::Config(m)) if m.contains("generations >= 1")),
+        "{r:?}"
+    );
 }
 
 /// A JSON array of numbers.
