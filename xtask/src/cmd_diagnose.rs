@@ -734,6 +734,9 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
         t0.elapsed().as_secs_f64(),
         out.join("report.html").display()
     );
+    if let Some(c) = d.carry_over_caution() {
+        println!("caution: {c}");
+    }
     // The user's next step: diagnose again with the verdict's effect in the model. With the
     // verdict `none` / `unknown` there is no effect to add, but the control refit (the same
     // model refitted on the train split) may still beat the model as given: `--write-run`

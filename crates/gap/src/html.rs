@@ -302,6 +302,9 @@ pub fn render_html(d: &Diagnosis, title: &str) -> String {
         },
         d.control.heldout_mde_cm
     );
+    if let Some(c) = d.carry_over_caution() {
+        let _ = write!(body, "<p class='caution'>Caution: {}.</p>", esc(&c));
+    }
     if let Some(t) = &d.tie_break {
         let _ = write!(
             body,
@@ -503,7 +506,7 @@ pub fn render_html(d: &Diagnosis, title: &str) -> String {
         );
     }
     format!(
-        "<!DOCTYPE html><html><head><meta charset='utf-8'><title>pgrd diagnosis: {}</title><style>body{{font-family:sans-serif;max-width:900px;margin:20px auto;color:#222}}table{{border-collapse:collapse;margin:8px 0}}td,th{{border:1px solid #ccc;padding:3px 8px;font-size:13px}}.verdict{{font-size:22px}}svg{{display:block;margin:8px 0;background:#fafafa}}</style></head><body>{}</body></html>\n",
+        "<!DOCTYPE html><html><head><meta charset='utf-8'><title>pgrd diagnosis: {}</title><style>body{{font-family:sans-serif;max-width:900px;margin:20px auto;color:#222}}table{{border-collapse:collapse;margin:8px 0}}td,th{{border:1px solid #ccc;padding:3px 8px;font-size:13px}}.verdict{{font-size:22px}}.caution{{background:#fff4d6;border-left:4px solid #e0a000;padding:6px 10px}}svg{{display:block;margin:8px 0;background:#fafafa}}</style></head><body>{}</body></html>\n",
         esc(title),
         body
     )

@@ -32,6 +32,8 @@
 //!   (the same stage as the diagnosis, [`judge`]): how the verdict depends on the rule.
 //! - [`add_learnable`] adds a trained residual network's held-out errors: how much of the
 //!   gap is learnable, and `unknown` when the network beats every model the library offers.
+//! - [`Diagnosis::refit_does_not_carry_over`] flags a diagnosis whose control refit scores
+//!   worse on the held-out episodes than the model as given: its comparisons are fragile.
 //! - [`render_html`] turns a [`Diagnosis`] into a self-contained page.
 //!
 //! Method, formulas, parameter ranges and measured bench results: `docs/gap.md`.
@@ -68,8 +70,8 @@ pub use candidates::{
     Candidate, CandidateFamily, MaterialFrame, PROBE_GYRO, PROBE_WINDOW_M, principal_axis,
 };
 pub use diagnose::{
-    ControlFit, DiagnoseConfig, Diagnosis, Heldout, HowFar, RACE_SCENES, RankedEffect, TieBreak,
-    diagnose, evaluate, material_frame,
+    CONTROL_EXCESS_CAUTION, ControlFit, DiagnoseConfig, Diagnosis, Heldout, HowFar, RACE_SCENES,
+    RankedEffect, TieBreak, diagnose, evaluate, material_frame,
 };
 pub use effort::{BudgetChoice, ESTIMATE_MARGIN, Effort, SECONDS_PER_WORK, effort};
 pub use focus::{FOCUS_SCENES, ProbeStart, ResidualFocus, focus_of_lines, residual_focus};

@@ -145,6 +145,30 @@ fn report_json_has_the_documented_schema() {
         !html.contains("src=") && !html.contains("href="),
         "the page must not load anything"
     );
+    // The caution appears exactly when the control refit scores more than 2 % worse held out
+    // than the model as given, on the page and in the sentence the command line prints.
+    let given = d.backbone_as_given.mde_cm;
+    for (control, cautioned) in [
+        (given * 0.9, false),
+        (given * 1.019, false),
+        (given * 1.05, true),
+    ] {
+        let mut e = d.clone();
+        e.control.heldout_mde_cm = control;
+        assert_eq!(
+            e.refit_does_not_carry_over(),
+            cautioned,
+            "{control} vs {given}"
+        );
+        assert_eq!(e.carry_over_caution().is_some(), cautioned);
+        assert_eq!(
+            gap::render_html(&e, "rope fixture").contains("Caution:"),
+            cautioned
+        );
+    }
+    let mut e = d.clone();
+    e.control.heldout_mde_cm = given * 1.05;
+    assert!(e.carry_over_caution().unwrap().contains("5.0 % worse"));
 }
 
 #[test]
