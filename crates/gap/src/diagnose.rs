@@ -947,8 +947,8 @@ pub fn evaluate(
 
 /// How much worse than the model as given the control refit may score on the held-out
 /// episodes before a diagnosis says its comparisons are fragile
-/// ([`Diagnosis::refit_does_not_carry_over`]): 2 %, read off the stored bench reports of
-/// sessions 80–82 (docs/gap.md, "When the control refit does not carry over").
+/// ([`Diagnosis::carry_over_caution`]): 2 %, read off the stored bench reports of sessions
+/// 80–82 (docs/gap.md, "When the control refit does not carry over").
 pub const CONTROL_EXCESS_CAUTION: f64 = 0.02;
 
 impl Diagnosis {
@@ -958,19 +958,14 @@ impl Diagnosis {
         self.control.heldout_mde_cm / self.backbone_as_given.mde_cm - 1.0
     }
 
-    /// Whether the control refit scores more than [`CONTROL_EXCESS_CAUTION`] worse on the
-    /// held-out episodes than the model it started from. The training and held-out episodes
-    /// then disagree about the model, and every candidate is compared against a control that
-    /// the held-out episodes do not support: on the bench such diagnoses named the true
-    /// effect far less often (docs/gap.md). A caution for the reader, not part of the verdict.
-    pub fn refit_does_not_carry_over(&self) -> bool {
-        self.control_excess() > CONTROL_EXCESS_CAUTION
-    }
-
-    /// The caution [`refit_does_not_carry_over`](Self::refit_does_not_carry_over) stands for,
-    /// as one sentence for the command line and the page; `None` when it does not apply.
+    /// A caution for the reader, one sentence for the command line and the page, when the
+    /// control refit scores more than [`CONTROL_EXCESS_CAUTION`] worse on the held-out
+    /// episodes than the model it started from (`None` otherwise). The training and held-out
+    /// episodes then disagree about the model, and every candidate is compared against a
+    /// control the held-out episodes do not support: on the bench such diagnoses named the
+    /// true effect far less often. Not part of the verdict.
     pub fn carry_over_caution(&self) -> Option<String> {
-        self.refit_does_not_carry_over().then(|| {
+        (self.control_excess() > CONTROL_EXCESS_CAUTION).then(|| {
             format!(
                 "the control refit scores {:.1} % worse on the held-out episodes than the model \
                  as given ({:.3} against {:.3} cm): refitting to the training episodes does not \

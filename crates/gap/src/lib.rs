@@ -32,7 +32,7 @@
 //!   (the same stage as the diagnosis, [`judge`]): how the verdict depends on the rule.
 //! - [`add_learnable`] adds a trained residual network's held-out errors: how much of the
 //!   gap is learnable, and `unknown` when the network beats every model the library offers.
-//! - [`Diagnosis::refit_does_not_carry_over`] flags a diagnosis whose control refit scores
+//! - [`Diagnosis::carry_over_caution`] flags a diagnosis whose control refit scores
 //!   worse on the held-out episodes than the model as given: its comparisons are fragile.
 //! - [`render_html`] turns a [`Diagnosis`] into a self-contained page.
 //!
