@@ -352,6 +352,10 @@ pub struct BenchCase {
     /// Significant candidates tied on held-out error, when there were any: `by_shrinkage` is
     /// what the verdict would have been without the signature tie-break.
     pub tie_break: Option<gap::TieBreak>,
+    /// The diagnosis carried the caution [`gap::Diagnosis::carry_over_caution`] (its control
+    /// refit scored worse held out than the model as given; the first round's, with
+    /// `--second-round`).
+    pub caution: bool,
 }
 
 /// A case `--plan visible` left out: the effect hardly moves the object.
@@ -964,6 +968,7 @@ pub fn run_bench(args: &DiagnoseBenchArgs) -> anyhow::Result<BenchSummary> {
                 diagnose_estimated_s: estimated,
                 network: d.learnable.clone(),
                 tie_break: d.tie_break.clone(),
+                caution: d.carry_over_caution().is_some(),
             };
             // The rung the case uses (the last one climbed, or the one that moves the object most).
             let rung = case.ladder.iter().find(|r| r.scale == case.scale);
@@ -1062,6 +1067,21 @@ pub fn run_bench(args: &DiagnoseBenchArgs) -> anyhow::Result<BenchSummary> {
         }
         println!();
     }
+    // How the verdicts fare where the diagnosis cautions (docs/gap.md, "When the control
+    // refit does not carry over").
+    let right = |cases: &[&BenchCase], caution: bool| {
+        let kept: Vec<_> = cases.iter().filter(|c| c.caution == caution).collect();
+        let n = kept.iter().filter(|c| c.verdict == c.expected).count();
+        format!("{n} / {}", kept.len())
+    };
+    let nones = pick(&|c| c.class == "none");
+    println!(
+        "right with the caution / without: in-library (target reached) {} / {}, none {} / {}",
+        right(&lib_reached, true),
+        right(&lib_reached, false),
+        right(&nones, true),
+        right(&nones, false),
+    );
     let summary = BenchSummary {
         bounds: args.bounds.name().to_string(),
         episodes_per_recording: args.episodes_per_recording,
@@ -1310,6 +1330,8 @@ mod tests {
                 "{}",
                 case.truth
             );
+            // And whether its report carries the caution.
+            assert_eq!(case.caution, d.carry_over_caution().is_some());
             // Each case records its estimate, made with the case's own (raced) settings.
             assert!(
                 case.diagnose_estimated_s > 0.0,
