@@ -552,6 +552,7 @@ struct Setup {
 fn setup(args: &DiagnoseArgs) -> anyhow::Result<Setup> {
     let data = Dataset::open(&args.data)?;
     let backbone = read_backbone(&args.run)?;
+    backbone.note_other_object(&data);
     let protocol: Protocol = args.protocol.into();
     let substep = args.substep.unwrap_or(backbone.substep);
     let setting = |substep| SceneSetting {

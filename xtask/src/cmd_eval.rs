@@ -164,6 +164,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
     );
     let data = Dataset::open(&args.data)?;
     let backbone = read_backbone(&args.run)?;
+    backbone.note_other_object(&data);
     let protocol: Protocol = args.protocol.into();
     let scene_config = backbone.setting().scene_config(&data)?;
     let scenes = load_scenes(&data, args.split, protocol, &scene_config)?;

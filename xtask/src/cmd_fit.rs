@@ -343,4 +343,23 @@ mod tests {
         }
         std::fs::remove_dir_all(&dir).ok();
     }
+
+    /// A run scored on another object's data says so; on its own object's data it is quiet.
+    #[test]
+    fn a_run_notes_data_of_another_object() {
+        let dir = std::env::temp_dir().join(format!("pgrd-fit-object-{}", std::process::id()));
+        run(&FitArgs::quick_rope_fixture(dir.clone())).unwrap();
+        let file = read_backbone(&dir).unwrap();
+        assert_eq!(file.fitted_object().as_deref(), Some("rope"));
+        let rope = Dataset::open(FIXTURE_ROPE).unwrap();
+        assert_eq!(file.note_other_object(&rope), None);
+        let teddy =
+            Dataset::open(concat!(env!("CARGO_MANIFEST_DIR"), "/../fixtures/teddy")).unwrap();
+        let note = file.note_other_object(&teddy).expect("a note");
+        assert!(
+            note.contains("fitted on rope data") && note.contains("not on teddy"),
+            "{note}"
+        );
+        std::fs::remove_dir_all(&dir).ok();
+    }
 }

@@ -412,6 +412,7 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
     let protocol: Protocol = args.protocol.into();
     let window = protocol.window(episode.frames())?;
     let backbone = read_backbone(&args.run)?;
+    backbone.note_other_object(&data);
     let scene = Scene::new(
         &data.meta,
         &episode,

@@ -561,6 +561,7 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
         .ok();
     let data = Dataset::open(&args.data)?;
     let backbone = read_backbone(&args.run)?;
+    backbone.note_other_object(&data);
     let options = backbone.options_for(&data, args.protocol.into())?;
     let mut set = TrainSet::with_backbone_options(
         &data,

@@ -187,6 +187,27 @@ pub struct BackboneFile {
 }
 
 impl BackboneFile {
+    /// The object of the dataset this run was fitted on, when that dataset can still be read.
+    pub fn fitted_object(&self) -> Option<String> {
+        Dataset::open(&self.dataset).ok().map(|d| d.meta.object)
+    }
+
+    /// A note on stderr when `data` records another object than the dataset this run was
+    /// fitted on (a rope's parameters scored on a teddy run, but mean nothing); returns it.
+    pub fn note_other_object(&self, data: &Dataset) -> Option<String> {
+        let fitted = self.fitted_object()?;
+        (fitted != data.meta.object).then(|| {
+            let note = format!(
+                "note: this run was fitted on {fitted} data ({}), not on {} ({})",
+                self.dataset,
+                data.meta.object,
+                data.root.display()
+            );
+            eprintln!("{note}");
+            note
+        })
+    }
+
     /// How this run's scenes are built (substep rule, material springs).
     pub fn setting(&self) -> SceneSetting {
         SceneSetting {
