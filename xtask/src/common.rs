@@ -193,7 +193,8 @@ impl BackboneFile {
     }
 
     /// A note on stderr when `data` records another object than the dataset this run was
-    /// fitted on (a rope's parameters scored on a teddy run, but mean nothing); returns it.
+    /// fitted on (a rope's parameters scored on a teddy still run, but the numbers mean
+    /// little); returns the note.
     pub fn note_other_object(&self, data: &Dataset) -> Option<String> {
         let fitted = self.fitted_object()?;
         (fitted != data.meta.object).then(|| {
