@@ -20,7 +20,7 @@ pub const PENALTY: f64 = 1e8;
 pub struct FitConfig {
     /// Candidates per generation.
     pub population: usize,
-    /// Generations to run.
+    /// Generations to run, at least 1 ([`fit`] refuses 0).
     pub generations: usize,
     /// Training scenes sampled per generation.
     pub samples: usize,
@@ -192,6 +192,12 @@ pub fn fit<F: Family>(
 ) -> Result<FitOutcome, FitError> {
     if scenes.is_empty() {
         return Err(FitError::NoScenes);
+    }
+    if config.generations == 0 {
+        // With no generation the "fit" would rescore its start and report it as fitted.
+        return Err(FitError::Config(
+            "a fit needs generations >= 1 (with none it would return its start unfitted)".into(),
+        ));
     }
     let mut run = match checkpoint.filter(|p| p.is_file()) {
         Some(path) => {

@@ -97,6 +97,21 @@ fn fit_reduces_loss_towards_the_truth() {
 }
 
 #[test]
+fn a_fit_of_no_generations_is_refused() {
+    let (_, scenes) = synthetic_scenes(&truth(), 2);
+    let family = BackboneFamily::new(springs::REFERENCE_BOUNDS).unwrap();
+    let config = FitConfig {
+        generations: 0,
+        ..FitConfig::default()
+    };
+    let r = fit(&scenes, &family, &config, None, &mut |_| {});
+    assert!(
+        matches!(&r, Err(fit::FitError::Config(m)) if m.contains("generations >= 1")),
+        "{r:?}"
+    );
+}
+
+#[test]
 fn resumed_fit_equals_uninterrupted() {
     let (_, scenes) = synthetic_scenes(&truth(), 3);
     let family = BackboneFamily::new(springs::REFERENCE_BOUNDS).unwrap();
