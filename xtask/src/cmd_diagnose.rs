@@ -61,12 +61,12 @@ pub struct DiagnoseArgs {
     /// Race the library candidates' refits (0: off): every candidate gets half the
     /// generations, and only the best N by training loss get the rest and the rescoring; the
     /// control and the probe always get the whole budget. Faster, at some risk to the verdict
-    /// (`docs/gap.md`, "Racing the refits"). Default: off, unless `--budget-min` chooses it.
+    /// (`docs/gap-log.md`, "Racing the refits"). Default: off, unless `--budget-min` chooses it.
     #[arg(long)]
     pub race: Option<usize>,
     /// The probe's refit runs this many times `--generations` (1: as every other refit). The
     /// probe searches eleven parameters; a longer refit finds strong fields a short one
-    /// misses (`docs/gap.md`, "A longer refit for the probe").
+    /// misses (`docs/gap-log.md`, "A longer refit for the probe").
     #[arg(long)]
     pub probe_factor: Option<usize>,
     /// CMA-ES candidates per generation of the probe's refit (0: `--population`, as every
@@ -372,7 +372,7 @@ const DEFAULT_REFITS: Refits = Refits {
 /// `diagnose-bench`'s default refit size: 8 generations of 6 episodes, rescored on all of its
 /// 16 training episodes. Its measured benches sampled and rescored so (6 episodes a
 /// generation, 12–16 rescored) but mostly ran 16 generations, and fewer generations cost
-/// verdicts there (`docs/gap.md`, "A larger refit budget"), hence the race before it.
+/// verdicts there (`docs/gap-log.md`, "A larger refit budget"), hence the race before it.
 const BENCH_REFITS: Refits = Refits {
     generations: 8,
     samples: 6,
@@ -381,7 +381,7 @@ const BENCH_REFITS: Refits = Refits {
 
 /// The budget's last resort, taken only when no other level fits: the bench's refit size
 /// with 4 training episodes sampled per generation instead of 6 (a noisier generation for 28 %
-/// fewer refit rollouts on a default-size dataset; its cost in bench verdicts: `docs/gap.md`,
+/// fewer refit rollouts on a default-size dataset; its cost in bench verdicts: `docs/gap-log.md`,
 /// "A margin and fewer samples in the budget").
 const FEWER_SAMPLES: Refits = Refits {
     samples: 4,
@@ -443,7 +443,7 @@ impl Level {
 /// the order of their measured cost in verdicts (`docs/gap.md`, "Time budget"): the race
 /// (when neither `--race` nor `--substep` was given; it changed 2 of 106 bench verdicts), the
 /// probe at the other refits' length (when `--probe-factor` was not given and the default's
-/// is above 1; it costs `unknown` verdicts, `docs/gap.md`, "A longer refit for the probe"), the
+/// is above 1; it costs `unknown` verdicts, `docs/gap-log.md`, "A longer refit for the probe"), the
 /// bench's default refit size (when none of `--generations`, `--samples`, `--rescore-scenes`
 /// was given; fewer generations cost bench verdicts), the spectral substep (with the race,
 /// when the run's rule is `auto`; it cost verdicts on two of three bench seeds), then, when the

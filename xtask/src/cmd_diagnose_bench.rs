@@ -17,7 +17,7 @@
 //! effect data share the no-effect data's seed (same placements and gripper motions), so the
 //! effect-attributable gap is a paired difference.
 //!
-//! Method and measured results: `docs/gap.md`.
+//! Method: `docs/gap.md`; measured results: `docs/gap-log.md`.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -240,7 +240,7 @@ pub struct DiagnoseBenchArgs {
     /// names an effect, diagnose again with that effect added at its refitted values (as
     /// `diagnose --write-run` writes it; same settings and seed), and answer `unknown` when
     /// that second round does, otherwise the first round's effect. Its report goes to
-    /// `report-round2` (`docs/gap.md`, "A second round after an effect verdict").
+    /// `report-round2` (`docs/gap-log.md`, "A second round after an effect verdict").
     #[arg(long)]
     pub second_round: bool,
 }
@@ -1067,7 +1067,7 @@ pub fn run_bench(args: &DiagnoseBenchArgs) -> anyhow::Result<BenchSummary> {
         }
         println!();
     }
-    // How the verdicts fare where the diagnosis cautions (docs/gap.md, "When the control
+    // How the verdicts fare where the diagnosis cautions (docs/gap-log.md, "When the control
     // refit does not carry over").
     let right = |cases: &[&BenchCase], caution: bool| {
         let kept: Vec<_> = cases.iter().filter(|c| c.caution == caution).collect();

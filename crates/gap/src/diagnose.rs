@@ -78,7 +78,7 @@ pub struct DiagnoseConfig {
     /// other refit; 0, in reports written before the field existed, reads as 1). The probe
     /// searches eleven parameters where a library candidate searches one or two, and a short
     /// refit of it can miss a strong field. Default 4: on the bench it found three more of
-    /// sixteen `unknown` cases and changed no other verdict (`docs/gap.md`, "A longer refit
+    /// sixteen `unknown` cases and changed no other verdict (`docs/gap-log.md`, "A longer refit
     /// for the probe"). With a race the probe's two starts still race over half of
     /// `generations`; the kept one then runs to [`DiagnoseConfig::probe_generations`].
     #[serde(default, skip_serializing_if = "is_zero")]
@@ -948,7 +948,7 @@ pub fn evaluate(
 /// How much worse than the model as given the control refit may score on the held-out
 /// episodes before a diagnosis says its comparisons are fragile
 /// ([`Diagnosis::carry_over_caution`]): 2 %, read off the stored bench reports of sessions
-/// 80–82 (docs/gap.md, "When the control refit does not carry over").
+/// 80–82 (docs/gap-log.md, "When the control refit does not carry over").
 pub const CONTROL_EXCESS_CAUTION: f64 = 0.02;
 
 impl Diagnosis {
@@ -971,7 +971,7 @@ impl Diagnosis {
                  as given ({:.3} against {:.3} cm): refitting to the training episodes does not \
                  carry over to the held-out ones, so every comparison here rests on a control \
                  they do not support; on the bench, diagnoses like this named the true effect \
-                 far less often (docs/gap.md, \"When the control refit does not carry over\")",
+                 far less often (docs/gap-log.md, \"When the control refit does not carry over\")",
                 100.0 * self.control_excess(),
                 self.control.heldout_mde_cm,
                 self.backbone_as_given.mde_cm

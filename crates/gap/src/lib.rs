@@ -36,7 +36,8 @@
 //!   worse on the held-out episodes than the model as given: its comparisons are fragile.
 //! - [`render_html`] turns a [`Diagnosis`] into a self-contained page.
 //!
-//! Method, formulas, parameter ranges and measured bench results: `docs/gap.md`.
+//! Method, formulas and parameter ranges: `docs/gap.md`; measured bench results, run by run:
+//! `docs/gap-log.md`.
 //!
 //! ```
 //! // Held-out MDE per episode of the control and of one candidate, cm.

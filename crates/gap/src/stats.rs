@@ -84,7 +84,7 @@ pub struct VerdictRule {
     /// also what the effect must carry on its own (the effect-off check). 0.10 by default since
     /// session 82 (0.05 before): model-class corrections of 2-10 % come and go between two
     /// datasets of one object, while effects that raise the error by half sit far above
-    /// (`docs/gap.md`, "A 10 % floor").
+    /// (`docs/gap-log.md`, "A 10 % floor").
     pub min_shrinkage: f64,
     /// Least shrinkage the generic probe must add on top of the best library effect to call the
     /// gap `unknown`.
