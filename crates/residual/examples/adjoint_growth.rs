@@ -2,7 +2,7 @@
 //!
 //! Training through the backbone (`--sim-gradient adjoint`) multiplies one step adjoint per
 //! step: over a long window the product can grow without bound and the training gradient
-//! becomes `inf` or NaN (`docs/residual.md`, "Truncating the adjoint"). For a few training
+//! becomes `inf` or NaN (`docs/residual.md`, Training, "Where it breaks down"). For a few training
 //! segments of `steps` steps this prints
 //! - `fd`: the largest particle distance between two backbone rollouts whose starts differ by
 //!   up to 1e-4 m along x, divided by that offset, after k steps (finite, so it saturates);
