@@ -1,6 +1,6 @@
 //! `cargo xtask diagnose` (where / which / how far for one dataset and fitted run) and
 //! `cargo xtask diagnose-bench` (the diagnosis scored on reference-world data whose effect was
-//! withheld from the model; `cmd_diagnose_bench.rs`). Method: `docs/gap.md`.
+//! withheld from the model; `cmd_diagnose_bench/`). Method: `docs/gap.md`.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -16,7 +16,7 @@ use crate::common::{
 };
 use crate::report::write_json;
 
-#[path = "cmd_diagnose_bench.rs"]
+#[path = "cmd_diagnose_bench/mod.rs"]
 mod bench;
 pub use bench::{DiagnoseBenchArgs, run_bench};
 
