@@ -17,7 +17,8 @@
 //! effect data share the no-effect data's seed (same placements and gripper motions), so the
 //! effect-attributable gap is a paired difference.
 //!
-//! Method: `docs/gap.md`; measured results: `docs/gap-log.md`.
+//! Method: `docs/gap.md`; measured results: `docs/gap-log.md`. Here: the steps above; what
+//! `--json` holds in `records.rs`; the confusion matrix and the shares right in `summary.rs`.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
