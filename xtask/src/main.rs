@@ -4,7 +4,7 @@
 use clap::{Parser, Subcommand};
 
 /// mimalloc instead of glibc's malloc, which returns the residual network's freed buffers to the
-/// system after every call and faults them back in (`docs/plan.md`, "Planning speed").
+/// system after every call and faults them back in (`docs/plan-log.md`, "Planning speed").
 #[global_allocator]
 static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 

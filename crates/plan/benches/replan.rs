@@ -20,7 +20,8 @@ use criterion::{Criterion, criterion_group, criterion_main};
 use plan::{ForwardModel, ModelState, Mppi, Pgrd, SpringMass, Task, TaskConfig, TaskKind};
 
 /// The allocator `cargo xtask` uses: glibc's malloc returns the network's freed buffers to the
-/// system after every call and faults them back in on the next (`docs/plan.md`).
+/// system after every call and faults them back in on the next (`docs/plan-log.md`, "Planning
+/// speed").
 #[global_allocator]
 static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 

@@ -14,7 +14,7 @@
 //! [`run_closed_loop`] executes the first step of each plan on a [`System`] — the reference
 //! world's [`world::Plant`] stands in for the real one — observes, and replans. [`Task`] builds
 //! the paper's rope tasks (lift, lower, rotate, curve, cable rerouting through a [`Slot`]).
-//! Design, tasks and measured numbers: `docs/plan.md`.
+//! Design and tasks: `docs/plan.md`; the measured runs: `docs/plan-log.md`.
 //!
 //! ```
 //! use plan::{LoopSettings, Mppi, SpringMass, Task, TaskConfig, TaskKind, run_closed_loop};

@@ -2,7 +2,7 @@
 //! what the system did so far.
 //!
 //! A residual network learned from recorded motions can predict a planner's own motions worse
-//! than its backbone (`docs/plan.md`: the rope's networks, 13–72 % worse along the planner's
+//! than its backbone (`docs/plan-log.md`: the rope's networks, 13–72 % worse along the planner's
 //! paths). In closed loop the system's response to every executed step is observed, so the
 //! model can measure that itself: [`OnlinePgrd`] keeps a few copies of the network with its
 //! residual scaled by a gain (0 = the backbone alone), scores each on the executed path after

@@ -1,7 +1,7 @@
 //! Many hybrid rollouts advanced together (a planner's population of candidates): groups of
 //! rollouts step in lockstep with one network call per step for all clouds of a group, through
 //! candle's fused forward-only kernels. Measured costs and the choice of group size:
-//! `docs/plan.md`, "Batched network evaluation".
+//! `docs/plan-log.md`, "Batched network evaluation".
 
 use candle_core::Tensor;
 use glam::Vec3;
@@ -102,7 +102,8 @@ pub fn predict_batch(net: &ResidualNet, jobs: &[PredictJob<'_>]) -> Result<Vec<J
 /// saves over one cloud per group, while the element-wise tensors of the default network stay
 /// below the 64 Ki elements from which candle 0.11 runs element-wise operations on its own
 /// spinning thread pool (which, from several rayon threads at once, cost more than it saved),
-/// and 15 candidates still make 4 groups for 2 threads (`docs/plan.md`).
+/// and 15 candidates still make 4 groups for 2 threads (`docs/plan-log.md`, "Batched network
+/// evaluation").
 const GROUP_POINTS: usize = 600;
 
 /// Runs one group in lockstep: backbone steps, then one network call for all its clouds.
