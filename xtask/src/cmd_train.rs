@@ -177,7 +177,7 @@ pub struct TrainArgs {
     pub rest_inputs: bool,
     /// Beyond the paper: also correct the particles a closed gripper holds, which moves the
     /// grasp itself (for grasps that slip or grippers that lag their recorded path;
-    /// docs/residual.md, "The grasp the network may not correct").
+    /// docs/residual-log.md, "The grasp the network may not correct").
     #[arg(long)]
     pub held_residual: bool,
     /// Where training segments start: `guided` (half from a backbone rollout pulled toward

@@ -74,7 +74,7 @@ fn bench(c: &mut Criterion) {
         b.iter(|| hybrid_rollout(&net, &bb, &scene, &history, opts).unwrap())
     });
     // Other sizes than the default (`train --enc-channels ... --dec-depths`): four times the
-    // channels' products, twice the blocks, and two smaller ones (`docs/residual.md`, "Smaller,
+    // channels' products, twice the blocks, and two smaller ones (`docs/residual-log.md`, "Smaller,
     // wider and deeper networks").
     let sized = [
         (

@@ -45,7 +45,7 @@ fn bench(c: &mut Criterion) {
         });
     }
     // The two-stage network that trains the rope's row recipe as well as the default
-    // (`docs/residual.md`, "Smaller, wider and deeper networks"), the batch as one graph.
+    // (`docs/residual-log.md`, "Smaller, wider and deeper networks"), the batch as one graph.
     let two_stages = ModelConfig {
         enc_channels: vec![16, 32],
         enc_depths: vec![1, 1],

@@ -111,7 +111,7 @@ pub struct ModelConfig {
     /// Also correct particles held by a closed gripper. The paper's residual leaves them to
     /// the backbone's kinematic grasp, which moves them by the recorded gripper's displacement
     /// from wherever they are, so a correction shifts the grasp itself: what an object whose
-    /// grasp slips, or whose gripper lags its recorded path, needs (`docs/residual.md`, "The
+    /// grasp slips, or whose gripper lags its recorded path, needs (`docs/residual-log.md`, "The
     /// grasp the network may not correct"). Off in the paper and in configurations saved
     /// before the option existed.
     #[serde(default)]

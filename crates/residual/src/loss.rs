@@ -19,7 +19,7 @@ pub enum TrainLoss {
     Mse,
     /// Mean Euclidean distance to the truth, cm: the evaluation metric MDE itself, smoothed
     /// within [`DISTANCE_EPS_CM`] of zero. Every particle pulls with unit strength, whatever its
-    /// error (`docs/residual.md`, "Why PGRD was worse on the teddy").
+    /// error (`docs/residual-log.md`, "Why PGRD was worse on the teddy").
     Distance,
 }
 

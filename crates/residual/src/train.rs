@@ -120,7 +120,7 @@ pub enum StartFrom {
     /// from recorded frames (as [`StartFrom::Recorded`]), by position in the batch as in
     /// [`StartFrom::Guided`] (with a batch of one, every segment is guided). Measured on the
     /// full datasets, each of those two wins on some objects and loses on others
-    /// (docs/residual.md, Status).
+    /// (docs/residual-log.md, Status).
     GuidedRecorded,
 }
 
@@ -432,7 +432,7 @@ impl TrainSet {
                 // would join the wrong particles. Such a scene gets a backbone of its own.
                 // (Carrying the start frame's interior along with the surface instead, so the
                 // evaluation's backbone could run here, trained worse networks:
-                // docs/residual.md, "Carried interiors".)
+                // docs/residual-log.md, "Carried interiors".)
                 let fresh_interior =
                     self.meta.structure == Structure::Volume && scene.particles() > scene.tracked;
                 let backbone = if scene.particles() == ep.base.particles() && !fresh_interior {

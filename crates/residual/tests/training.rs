@@ -397,7 +397,7 @@ fn bounded_oracle_spans_backbone_to_truth() {
 
 /// A recorded start on a filled volume runs in springs built on its own particles: the fill
 /// of another frame is other material points, even when it has as many of them, so the start
-/// frame's backbone would join the wrong particles (docs/residual.md, "Carried interiors").
+/// frame's backbone would join the wrong particles (docs/residual-log.md, "Carried interiors").
 #[test]
 fn recorded_starts_on_a_filled_volume_run_in_their_own_springs() {
     let data = Dataset::open(common::fixture("teddy")).unwrap();

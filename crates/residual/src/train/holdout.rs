@@ -86,7 +86,7 @@ impl TrainSet {
 /// network at step 0, i.e. nearly the backbone, or an earlier choice) unless the held-out
 /// evidence against it is clear. Per-episode errors of a few held-out episodes vary by
 /// centimetres, while a network that is worse on unseen episodes can still score slightly
-/// better on them (`docs/residual.md`, "Why PGRD was worse on the teddy"). False for
+/// better on them (`docs/residual-log.md`, "Why PGRD was worse on the teddy"). False for
 /// mismatched lengths, fewer than two episodes or any non-finite error.
 pub fn clearly_better(candidate: &[f64], current: &[f64]) -> bool {
     paired_difference(candidate, current).is_some_and(|(mean, se)| mean > se)
