@@ -10,8 +10,11 @@
 //!
 //! Exact for a case as long as its object's base search (the no-effect diagnoses that chose the
 //! base effects every case is judged against) reaches the same verdicts under that rule; objects
-//! where it does not are marked, since a real run under that rule would diagnose their cases
-//! against another base model.
+//! where it does not are marked `?`, since a real run under that rule would diagnose their cases
+//! against another base model. A bench run with `--second-round` is replayed with its second
+//! rounds (`report-round2`, judged under the same rule) where the re-judged first round names
+//! the effect the stored second round added; where it names another effect, or one where the
+//! stored first round named none, the answer is the first round's, marked `²?`.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::Path;
@@ -68,6 +71,32 @@ impl std::fmt::Display for RuleSpec {
     }
 }
 
+/// The bench's answer for a case under a rule, and whether the stored reports replay it
+/// exactly: the first round's verdict `first` (already re-judged), unless the bench ran a second
+/// round and that round, judged under the same rule, says `unknown`. The stored second round
+/// was diagnosed with the stored first round's effect added, so it replays the bench only when
+/// the re-judged first round names that same effect; a first round that newly names an effect
+/// (or another one) would have had a second round no report holds.
+fn bench_answer(
+    round1: &Diagnosis,
+    round2: Option<&Diagnosis>,
+    first: String,
+    rule: &RuleSpec,
+    second_round: bool,
+) -> anyhow::Result<(String, bool)> {
+    let names_effect = first != "none" && first != "unknown";
+    if !second_round || !names_effect {
+        return Ok((first, true));
+    }
+    match round2 {
+        Some(d2) if first == round1.verdict => {
+            let v2 = d2.rejudge(rule.rule(d2))?.verdict;
+            Ok((if v2 == "unknown" { v2 } else { first }, true))
+        }
+        _ => Ok((first, false)),
+    }
+}
+
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let [bench, work, floors] = args.as_slice() else {
@@ -86,6 +115,9 @@ fn main() -> anyhow::Result<()> {
         .as_array()
         .or_else(|| json[1].as_array())
         .context("no cases in the bench file")?;
+
+    // Whether the bench ran `--second-round` (it records both rounds' verdicts).
+    let second_round = cases.iter().any(|c| c["rounds"].is_array());
 
     // Objects whose base search changes with the floor: their cases are not exact.
     let mut inexact: BTreeSet<(String, usize)> = BTreeSet::new();
@@ -125,7 +157,15 @@ fn main() -> anyhow::Result<()> {
             let scale = c["scale"].as_f64().context("case without a scale")?;
             format!("{object}-{truth}-x{scale}")
         };
-        let d = read(&work.join(dir).join("report/report.json"))?;
+        let d = read(&work.join(&dir).join("report/report.json"))?;
+        // With `--second-round` the bench diagnosed again, with the first round's effect
+        // added, every case whose first round named an effect.
+        let round2_path = work.join(&dir).join("report-round2/report.json");
+        let round2 = if round2_path.exists() {
+            Some(read(&round2_path)?)
+        } else {
+            None
+        };
         let mut class = s("class");
         if class == "in-library" && !reached {
             class.push_str(" (target not reached)");
@@ -135,15 +175,18 @@ fn main() -> anyhow::Result<()> {
             .or_insert_with(|| vec![(0, 0); floors.len()]);
         let mut line = format!(
             "{object:<6} {truth:<24} expected {expected:<24} stored {:<24}",
-            d.verdict
+            s("verdict")
         );
         for (k, f) in floors.iter().enumerate() {
-            let v = d.rejudge(f.rule(&d))?.verdict;
-            let mark = if inexact.contains(&(object.clone(), k)) {
-                "?"
-            } else {
-                ""
-            };
+            let first = d.rejudge(f.rule(&d))?.verdict;
+            let (v, replay) = bench_answer(&d, round2.as_ref(), first, f, second_round)?;
+            let mut mark = String::new();
+            if inexact.contains(&(object.clone(), k)) {
+                mark.push('?');
+            }
+            if !replay {
+                mark.push_str("²?");
+            }
             line.push_str(&format!(" {f}: {v}{mark}"));
             row[k].0 += usize::from(v == expected);
             row[k].1 += 1;
