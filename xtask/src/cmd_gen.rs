@@ -58,6 +58,11 @@ pub struct GenArgs {
     /// 40 % of it, so the data show the same state under different actions.
     #[arg(long, default_value_t = 1)]
     pub branches: usize,
+    /// Gauss–Seidel sweeps over the links per XPBD substep (1: the world every dataset so far
+    /// was made with). More bring the solve closer to the nominal material where one sweep
+    /// does not converge, e.g. a sheet with a large mass contrast (docs/world.md, "Solver").
+    #[arg(long, default_value_t = 1)]
+    pub link_sweeps: usize,
     /// Dataset size preset.
     #[arg(long, value_enum, default_value = "full")]
     pub preset: Preset,
@@ -87,6 +92,7 @@ pub fn run(args: &GenArgs) -> anyhow::Result<()> {
         cfg.seed = args.seed;
         cfg.motion = args.motion;
         cfg.branches = args.branches;
+        cfg.link_sweeps = args.link_sweeps;
         if let Some(e) = args.episodes {
             cfg.train_episodes = e;
         }

@@ -59,7 +59,15 @@ pub struct GenConfig {
     /// under different actions. Each yields `episodes_per_recording` episodes, so a recording
     /// gives up to `b × episodes_per_recording`.
     pub branches: usize,
+    /// Gauss–Seidel sweeps over the links per XPBD substep (1, the default, is the world every
+    /// dataset so far was made with; `docs/world.md`, "Solver"). More sweeps bring the solve
+    /// closer to the nominal material, which matters where one sweep does not converge, e.g. a
+    /// sheet with a large mass contrast. At most [`MAX_LINK_SWEEPS`].
+    pub link_sweeps: usize,
 }
+
+/// The most link sweeps per substep [`GenConfig::validate`] accepts.
+pub const MAX_LINK_SWEEPS: usize = 64;
 
 /// Default cap on the fine particles carrying ground-truth Gaussians in a full dataset.
 pub const DEFAULT_GAUSSIAN_PARTICLES: usize = 600;
@@ -94,6 +102,7 @@ impl GenConfig {
             gaussian_particles: DEFAULT_GAUSSIAN_PARTICLES,
             motion: MotionStyle::Everyday,
             branches: 1,
+            link_sweeps: 1,
         }
     }
 
@@ -127,6 +136,12 @@ impl GenConfig {
                 "branched recordings need planning motions of a grasped object (got {} motions \
                  of the {})",
                 self.motion, self.object
+            )));
+        }
+        if !(1..=MAX_LINK_SWEEPS).contains(&self.link_sweeps) {
+            return Err(Error::Config(format!(
+                "link sweeps must be in 1..={MAX_LINK_SWEEPS} (got {})",
+                self.link_sweeps
             )));
         }
         if self.tracked == 0 {
@@ -197,6 +212,18 @@ pub struct TimingInfo {
     pub substeps_per_step: usize,
     /// Unrecorded settling before each recording, s.
     pub settle_s: f32,
+    /// Gauss–Seidel sweeps over the links per substep (written only when not 1, so datasets
+    /// made with the default have the same `truth.json` as before the setting existed).
+    #[serde(default = "one_sweep", skip_serializing_if = "is_one_sweep")]
+    pub link_sweeps: usize,
+}
+
+fn one_sweep() -> usize {
+    1
+}
+
+fn is_one_sweep(n: &usize) -> bool {
+    *n == 1
 }
 
 /// Ground truth about a generated dataset, written as `truth.json` beside `dataset.json`.
@@ -302,7 +329,8 @@ pub fn generate_with_progress(
     progress: &(dyn Fn(usize, usize) + Sync),
 ) -> Result<GeneratedDataset, Error> {
     cfg.validate()?;
-    let bp = blueprint(cfg.object, cfg.resolution, cfg.seed);
+    let mut bp = blueprint(cfg.object, cfg.resolution, cfg.seed);
+    bp.link_sweeps = cfg.link_sweeps;
     let tracked = select_tracked(&bp, cfg.tracked, cfg.seed)?;
     let gaussian_particles = truth_gaussians::select(&bp, cfg.gaussian_particles);
 
@@ -454,6 +482,7 @@ pub fn generate_with_progress(
             history_frames: HISTORY_FRAMES,
             eval_steps: EVAL_STEPS,
             substeps_per_step: bp.substeps,
+            link_sweeps: cfg.link_sweeps,
             settle_s: SETTLE_S,
         },
         fine_particles: bp.len(),

@@ -56,8 +56,9 @@ pub use effects::{
 pub use error::Error;
 pub use generate::{
     BranchInfo, DEFAULT_GAUSSIAN_PARTICLES, EPISODE_STRIDE, EVAL_STEPS, FIXTURE_GAUSSIAN_PARTICLES,
-    FPS, FRAMES_PER_EPISODE, GenConfig, GeneratedDataset, HISTORY_FRAMES, MaterialInfo,
-    RecordingInfo, TimingInfo, Truth, default_tracked, generate, generate_with_progress,
+    FPS, FRAMES_PER_EPISODE, GenConfig, GeneratedDataset, HISTORY_FRAMES, MAX_LINK_SWEEPS,
+    MaterialInfo, RecordingInfo, TimingInfo, Truth, default_tracked, generate,
+    generate_with_progress,
 };
 pub use lab::Lab;
 pub use motion::MotionStyle;

@@ -64,6 +64,8 @@ pub(crate) struct Sim {
     links: Vec<Link>,
     stiff_end: usize,
     stiff_iterations: usize,
+    /// Sweeps over all links per substep (≥ 1).
+    link_sweeps: usize,
     stencils: Vec<Stencil>,
     faces: Vec<[u32; 3]>,
     drag_shape: Vec<DragShape>,
@@ -158,6 +160,7 @@ impl Sim {
             links,
             stiff_end,
             stiff_iterations: bp.stiff_iterations,
+            link_sweeps: bp.link_sweeps.max(1),
             stencils,
             faces: bp.faces.clone(),
             drag_shape: bp.drag.clone(),
@@ -246,7 +249,9 @@ impl Sim {
         for _ in 0..self.stiff_iterations {
             self.solve_links(h, 0, self.stiff_end);
         }
-        self.solve_links(h, 0, self.links.len());
+        for _ in 0..self.link_sweeps {
+            self.solve_links(h, 0, self.links.len());
+        }
         self.solve_stencils(h);
         if let GraspMode::Compliant {
             compliance,

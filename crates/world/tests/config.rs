@@ -62,6 +62,12 @@ fn bad_configurations_are_errors_not_panics() {
     let mut cfg = GenConfig::fixture(ObjectKind::Flag);
     cfg.observation.noise_std_m = f32::NAN;
     assert!(generate(&cfg).is_err());
+
+    for sweeps in [0, world::MAX_LINK_SWEEPS + 1] {
+        let mut cfg = GenConfig::fixture(ObjectKind::Paper);
+        cfg.link_sweeps = sweeps;
+        assert!(message(generate(&cfg).unwrap_err()).contains("link sweeps"));
+    }
 }
 
 #[test]
@@ -96,6 +102,9 @@ fn truth_json_records_effects_parameters_and_recordings() {
         .collect();
     assert_eq!(splits, vec![(2, 60), (1, 40), (2, 60)]);
     assert_eq!(truth.tracked_indices.len(), 80);
+    // The default sweep count is not written, so datasets keep the truth.json they had.
+    assert_eq!(truth.timing.link_sweeps, 1);
+    assert!(!text.contains("link_sweeps"));
     assert!(truth.fine_particles > 3 * 80);
     // The overlapping episodes of one recording share their 20 common frames exactly.
     let (a, b) = (&data.episodes[0].0, &data.episodes[1].0);

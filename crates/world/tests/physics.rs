@@ -1,6 +1,8 @@
 //! Effects behave as their physics says: quadratic drag removes more energy at higher speed and
 //! more across a sheet than along it; actuation delay shifts the response by the set lag;
-//! plasticity leaves a permanent deformation after the load is removed.
+//! plasticity leaves a permanent deformation after the load is removed. And the solver's known
+//! limit: one Gauss–Seidel sweep per substep lets a sheet with a large mass contrast stretch,
+//! which more sweeps undo.
 
 use glam::Vec3;
 use world::{
@@ -158,4 +160,74 @@ fn plasticity_leaves_a_permanent_deformation() {
         "an elastic rope returns to its length"
     );
     assert!(plastic / rest > 1.04, "a plastic rope stays longer");
+}
+
+/// Mean |distance / reference − 1| over the pairs of tracked points within 4 cm of each other in
+/// the first frame of `reference`'s first episode, over every frame of every episode of `data`
+/// where both are seen, against the same pair's first-frame distance in `reference`.
+fn neighbour_stretch(reference: &world::GeneratedDataset, data: &world::GeneratedDataset) -> f32 {
+    let first = &reference.episodes[0].0;
+    let x0 = first.frame(0);
+    let n = first.particles();
+    let pairs: Vec<(usize, usize, f32)> = (0..n)
+        .flat_map(|i| (i + 1..n).map(move |j| (i, j)))
+        .map(|(i, j)| (i, j, x0[i].distance(x0[j])))
+        .filter(|&(_, _, d)| d < 0.04 && d > 1e-4)
+        .collect();
+    assert!(pairs.len() > 20, "too few neighbour pairs: {}", pairs.len());
+    let (mut sum, mut count) = (0.0f32, 0usize);
+    for (ep, _) in &data.episodes {
+        for t in 0..ep.frames() {
+            let x = ep.frame(t);
+            for &(i, j, d0) in &pairs {
+                if ep.visible(t, i) && ep.visible(t, j) {
+                    sum += (x[i].distance(x[j]) / d0 - 1.0).abs();
+                    count += 1;
+                }
+            }
+        }
+    }
+    sum / count.max(1) as f32
+}
+
+/// The paper at the bench's mass-distribution rung ×16 (contrast 1.5¹⁶ ≈ 657), as
+/// `diagnose-bench` makes its cases, with `sweeps` link sweeps per substep: the neighbour
+/// stretch of the effect data and of the same seed's no-effect data.
+fn paper_mass_stretch(sweeps: usize) -> (f32, f32) {
+    let make = |effects: Effects| {
+        let mut cfg = GenConfig::fixture(ObjectKind::Paper);
+        (
+            cfg.train_episodes,
+            cfg.val_episodes,
+            cfg.episodes_per_recording,
+            cfg.tracked,
+        ) = (3, 0, 1, 60);
+        (cfg.seed, cfg.gaussian_particles, cfg.link_sweeps) = (37, 0, sweeps);
+        cfg.effects = effects;
+        generate(&cfg).unwrap()
+    };
+    let plain = make(Effects::none());
+    let heavy = make(Effects::only_scaled(
+        ObjectKind::Paper,
+        EffectKind::MassDistribution,
+        16.0,
+    ));
+    (
+        neighbour_stretch(&plain, &heavy),
+        neighbour_stretch(&plain, &plain),
+    )
+}
+
+#[test]
+fn more_link_sweeps_undo_the_stretch_of_a_large_mass_contrast() {
+    let (heavy1, plain1) = paper_mass_stretch(1);
+    let (heavy8, plain8) = paper_mass_stretch(8);
+    println!("one sweep: {heavy1:.3} against {plain1:.3}; eight: {heavy8:.3} against {plain8:.3}");
+    // One sweep: the heavy regions pull their light neighbours far apart (docs/world.md).
+    assert!(heavy1 - plain1 > 0.2, "one sweep: {heavy1} vs {plain1}");
+    // Eight sweeps take most of that excess away.
+    assert!(
+        heavy8 - plain8 < 0.5 * (heavy1 - plain1),
+        "eight sweeps: {heavy8} vs {plain8}, one: {heavy1} vs {plain1}"
+    );
 }

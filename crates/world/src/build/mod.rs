@@ -96,6 +96,9 @@ pub(crate) struct Blueprint {
     pub stiff_links: usize,
     /// ...swept this many extra times per substep (a rigid part needs more Gauss–Seidel sweeps).
     pub stiff_iterations: usize,
+    /// Gauss–Seidel sweeps over all links per substep (0 reads as 1, the world's default;
+    /// [`crate::GenConfig::link_sweeps`]).
+    pub link_sweeps: usize,
     /// Nominal fine spacing, m.
     pub spacing: f32,
 }
