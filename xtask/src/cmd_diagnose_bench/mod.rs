@@ -225,6 +225,11 @@ pub struct DiagnoseBenchArgs {
     /// Gripper motions of every generated dataset (`everyday` or `probing`; see `gen`).
     #[arg(long, default_value_t = world::MotionStyle::Everyday)]
     pub motion: world::MotionStyle,
+    /// Gauss–Seidel sweeps over the links per substep in every generated dataset and
+    /// displacement measurement (`gen --link-sweeps`; 1, the default, is the world every bench
+    /// so far ran on).
+    #[arg(long, default_value_t = 1)]
+    pub link_sweeps: usize,
     /// Minutes of residual-network training per case listed in `--network-cases` (0: none).
     /// The network learns on top of the object's base model on the case's training episodes
     /// (`cargo xtask train` defaults, both threads) and joins the diagnosis
@@ -267,6 +272,7 @@ fn generate(
     cfg.seed = seed;
     cfg.effects = effects;
     cfg.motion = args.motion;
+    cfg.link_sweeps = args.link_sweeps;
     // The diagnosis never renders: skip the ground-truth Gaussians.
     cfg.gaussian_particles = 0;
     let data = world::generate(&cfg)?;
@@ -288,6 +294,7 @@ fn displacement_cm(
     cfg.seed = args.seed;
     cfg.effects = effects;
     cfg.motion = args.motion;
+    cfg.link_sweeps = args.link_sweeps;
     Ok(100.0 * world::effect_displacement_m(&cfg)?)
 }
 
