@@ -17,20 +17,16 @@
 use std::collections::HashMap;
 
 use anyhow::{Context, bail};
-use dataset::Split;
+use dataset::Episode;
 use world::{EffectKind, Effects, GenConfig, ObjectKind};
 
-/// Observed tracked positions and visibility of the training episodes.
-struct Observed {
-    episodes: Vec<dataset::Episode>,
-}
-
+/// The observed training episodes (tracked positions and visibility).
 fn generate(
     object: ObjectKind,
     effects: Effects,
     seed: u64,
     sweeps: usize,
-) -> anyhow::Result<Observed> {
+) -> anyhow::Result<Vec<Episode>> {
     let mut cfg = GenConfig::fixture(object);
     cfg.train_episodes = 12;
     cfg.val_episodes = 0;
@@ -41,20 +37,13 @@ fn generate(
     cfg.gaussian_particles = 0;
     cfg.link_sweeps = sweeps;
     let data = world::generate(&cfg)?;
-    Ok(Observed {
-        episodes: data
-            .episodes
-            .into_iter()
-            .filter(|(_, s)| *s == Split::Train)
-            .map(|(e, _)| e)
-            .collect(),
-    })
+    Ok(data.episodes.into_iter().map(|(e, _)| e).collect())
 }
 
 /// Median distance of every pair seen together in at least 10 sampled frames (every 4th).
-fn reference(data: &Observed) -> HashMap<(usize, usize), f32> {
+fn reference(data: &[Episode]) -> HashMap<(usize, usize), f32> {
     let mut dists: HashMap<(usize, usize), Vec<f32>> = HashMap::new();
-    for ep in &data.episodes {
+    for ep in data {
         let n = ep.particles();
         for t in (0..ep.frames()).step_by(4) {
             let x = ep.frame(t);
@@ -78,9 +67,9 @@ fn reference(data: &Observed) -> HashMap<(usize, usize), f32> {
 }
 
 /// Mean and 90th percentile of |d / median − 1| over the near pairs.
-fn stretch(data: &Observed, near: &[((usize, usize), f32)]) -> (f64, f64) {
+fn stretch(data: &[Episode], near: &[((usize, usize), f32)]) -> (f64, f64) {
     let mut all: Vec<f32> = Vec::new();
-    for ep in &data.episodes {
+    for ep in data {
         for t in 0..ep.frames() {
             let x = ep.frame(t);
             for &((i, j), d0) in near {
