@@ -490,13 +490,11 @@ fn run_trial(
     let done =
         |x: &[Vec3], g: &[Vec3]| task.stop_at_success && task.success(x, g[0]).unwrap_or(false);
     let traj = run_closed_loop(model, world, &mut mppi, &objective, settings, &done)?;
-    let last = traj.observed.last().context("empty trajectory")?;
-    let grip = traj.grippers.last().context("empty trajectory")?[0];
     let walls: Vec<f64> = traj.replans.iter().map(|r| r.wall_s).collect();
     let report = TrialReport {
         trial: 0,
         seed,
-        success: task.success(last, grip)?,
+        success: task.trial_success(&traj)?,
         steps: traj.replans.len(),
         final_chamfer_cm: traj.chamfer_m.last().copied().unwrap_or(f64::NAN) * 100.0,
         chamfer_curve_cm: traj.chamfer_m.iter().map(|c| c * 100.0).collect(),

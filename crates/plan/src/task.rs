@@ -12,7 +12,7 @@ use springs::{
 };
 use world::{ObjectKind, Plant, PlantConfig, Resolution};
 
-use crate::{CostMode, MppiConfig, Objective, PlanError, Result, Workspace};
+use crate::{CostMode, MppiConfig, Objective, PlanError, Result, Trajectory, Workspace};
 
 /// Seconds the world settles after placing the rope and after a scripted path.
 const SETTLE_S: f32 = 1.0;
@@ -155,10 +155,36 @@ impl Slot {
         ])
     }
 
-    /// The success test of rerouting: every observed point lies beyond the wall's far face and
-    /// the gripper is below the slot's top.
+    /// The final-state half of rerouting's success test: every observed point lies beyond the
+    /// wall's far face and the gripper is below the slot's top. (The workspace's ceiling is
+    /// below the top, so a planned gripper always is; the test does not rely on it.)
     pub fn passed(&self, observed: &[Vec3], gripper: Vec3) -> bool {
         observed.iter().all(|p| p.y > self.far_y()) && gripper.z < self.height
+    }
+
+    /// The path half of the test: whether every crossing of the wall's mid-plane between
+    /// consecutive frames (by each point of the frames, at its linearly interpolated x) lies
+    /// within the wall's length, so that the rope went through the slot and not around the
+    /// wall's ends, which the workspace leaves room for (17 cm beyond each end). Inside the
+    /// wall's length the blocks are solid for the world's rope, so a crossing there is the
+    /// gap's; the wall's length, not the gap's width, is the bound because a point's chord
+    /// between two frames 0.1 s apart can cross the plane beside the gap while the point
+    /// itself went through it. Frames are the observed points (or the gripper) at the start
+    /// and after every executed step; frames of different lengths are compared over their
+    /// common points.
+    pub fn went_through<F: AsRef<[Vec3]>>(&self, frames: &[F]) -> bool {
+        let mid = self.near_y + 0.5 * self.thickness;
+        let reach = 0.5 * self.width + self.block_length;
+        frames.windows(2).all(|w| {
+            w[0].as_ref().iter().zip(w[1].as_ref()).all(|(a, b)| {
+                let (da, db) = (a.y - mid, b.y - mid);
+                if (da < 0.0) == (db < 0.0) {
+                    return true;
+                }
+                let x = a.x + (b.x - a.x) * (da / (da - db));
+                (x - self.centre_x).abs() <= reach
+            })
+        })
     }
 }
 
@@ -341,14 +367,36 @@ impl Task {
         Ok(o)
     }
 
-    /// Whether a trial that ended with `observed` points and the gripper at `gripper` succeeded:
-    /// rerouting uses [`Slot::passed`], the simple tasks a Chamfer distance to the target below
-    /// [`Task::success_chamfer_m`].
+    /// Whether a trial that ended with `observed` points and the gripper at `gripper` succeeded
+    /// by its final state: rerouting uses [`Slot::passed`], the simple tasks a Chamfer distance
+    /// to the target below [`Task::success_chamfer_m`]. The closed loop stops on it; a trial is
+    /// judged by [`Task::trial_success`].
     pub fn success(&self, observed: &[Vec3], gripper: Vec3) -> Result<bool> {
         match &self.slot {
             Some(s) => Ok(s.passed(observed, gripper)),
             None => Ok(self.objective()?.chamfer(observed)? < self.success_chamfer_m),
         }
+    }
+
+    /// Whether a closed-loop trial succeeded: [`Task::success`] on its last frame and, for
+    /// rerouting, the rope and the gripper reached the far side through the slot
+    /// ([`Slot::went_through`] on every frame). An empty trajectory is an error.
+    pub fn trial_success(&self, trajectory: &Trajectory) -> Result<bool> {
+        let (Some(last), Some(grip)) = (
+            trajectory.observed.last(),
+            trajectory.grippers.last().and_then(|g| g.first()),
+        ) else {
+            return Err(PlanError::Mismatch {
+                what: "trajectory frames",
+                expected: 1,
+                got: 0,
+            });
+        };
+        let path_ok = match &self.slot {
+            Some(s) => s.went_through(&trajectory.observed) && s.went_through(&trajectory.grippers),
+            None => true,
+        };
+        Ok(path_ok && self.success(last, *grip)?)
     }
 
     /// The spring-mass backbone of the observed rope at the start: its particles are the

@@ -53,6 +53,72 @@ fn rerouting_trials_differ_and_the_slot_test_is_geometric() {
     assert!((r.min.x - l.max.x - s.width).abs() < 1e-6);
 }
 
+/// A point's path from the near side to `end`, the wall's mid-plane crossed at `x_cross`.
+fn crossing(x_cross: f32, end: Vec3) -> Vec<Vec<Vec3>> {
+    let s = Slot::REROUTE;
+    let mid = s.near_y + 0.5 * s.thickness;
+    [
+        Vec3::new(x_cross, s.near_y - 0.3, 0.01),
+        Vec3::new(x_cross, mid - 0.01, 0.01),
+        Vec3::new(x_cross, mid + 0.01, 0.01),
+        end,
+    ]
+    .iter()
+    .map(|p| vec![*p])
+    .collect()
+}
+
+#[test]
+fn rerouting_counts_only_a_rope_that_went_through_the_slot() {
+    let s = Slot::REROUTE;
+    let end = Vec3::new(0.0, s.far_y() + 1.3, 0.01);
+    let wall_end = 0.5 * s.width + s.block_length;
+    assert!(s.went_through(&crossing(0.0, end)));
+    // A chord between two frames may cross beside the gap, within the wall's length.
+    assert!(s.went_through(&crossing(0.2, end)));
+    // Around the wall's end, on either side: not through the slot.
+    assert!(!s.went_through(&crossing(wall_end + 0.05, end)));
+    assert!(!s.went_through(&crossing(-wall_end - 0.05, end)));
+    // Diagonal chords: interpolated at the mid-plane.
+    let mid = s.near_y + 0.5 * s.thickness;
+    let diagonal = |x0: f32, x1: f32| {
+        vec![
+            vec![Vec3::new(x0, mid - 0.1, 0.01)],
+            vec![Vec3::new(x1, mid + 0.1, 0.01)],
+        ]
+    };
+    assert!(s.went_through(&diagonal(0.5, 0.7)));
+    assert!(!s.went_through(&diagonal(0.7, 0.8)));
+
+    // A trial is judged on its whole path: the same final state counts only through the slot.
+    let task = Task::build(TaskKind::Reroute, &config(0)).unwrap();
+    let trial = |x_cross: f32| plan::Trajectory {
+        observed: crossing(x_cross, end)
+            .into_iter()
+            .map(|f| vec![f[0]; 3])
+            .collect(),
+        grippers: crossing(0.0, end),
+        chamfer_m: vec![0.0; 4],
+        replans: Vec::new(),
+        done: true,
+        stopped: None,
+    };
+    assert!(task.success(&[end; 3], end).unwrap());
+    assert!(task.trial_success(&trial(0.0)).unwrap());
+    assert!(!task.trial_success(&trial(wall_end + 0.05)).unwrap());
+    let mut empty = trial(0.0);
+    empty.observed.clear();
+    assert!(task.trial_success(&empty).is_err());
+    // The simple tasks have no path condition.
+    let lift = Task::build(TaskKind::RopeLift, &config(0)).unwrap();
+    let held = plan::Trajectory {
+        observed: vec![lift.target.clone(); 2],
+        grippers: vec![vec![lift.target_gripper]; 2],
+        ..trial(0.0)
+    };
+    assert!(lift.trial_success(&held).unwrap());
+}
+
 #[test]
 fn spring_mass_mppi_lifts_the_world_rope() {
     let task = Task::build(TaskKind::RopeLift, &config(0)).unwrap();
