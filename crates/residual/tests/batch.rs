@@ -259,3 +259,29 @@ fn a_failing_rollout_fails_alone() {
     // Nothing to run is not an error.
     assert!(predict_batch(&net, &[]).unwrap().is_empty());
 }
+
+/// A saved and reloaded network predicts exactly what it did on the forward-only path `eval`
+/// and the planner take (the autograd path's reload is tested in `network.rs`).
+#[test]
+fn a_reloaded_checkpoint_predicts_identically_on_the_forward_only_path() {
+    let a = case("rope", 1, Vec3::ZERO);
+    let b = case("rope", 1, Vec3::new(0.002, 0.0, 0.001));
+    let net = ResidualNet::new(&ModelConfig::tiny(), 5).unwrap();
+    let dir = common::temp_dir("ckpt-forward");
+    let path = dir.join("residual.safetensors");
+    net.save(&path).unwrap();
+    let back = ResidualNet::load(&path).unwrap();
+    let jobs = [a.job(4), b.job(4)];
+    let positions = |n: &ResidualNet| -> Vec<Vec<Vec<Vec3>>> {
+        predict_batch(n, &jobs)
+            .unwrap()
+            .into_iter()
+            .map(|r| r.unwrap())
+            .collect()
+    };
+    assert_eq!(positions(&net), positions(&back));
+    // Another network predicts otherwise, so the comparison can fail.
+    let other = ResidualNet::new(&ModelConfig::tiny(), 6).unwrap();
+    assert_ne!(positions(&net), positions(&other));
+    std::fs::remove_dir_all(&dir).ok();
+}

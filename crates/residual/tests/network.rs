@@ -62,6 +62,10 @@ fn every_parameter_gets_a_gradient_in_the_ablations() {
         ..t.clone()
     });
     grads_reach_every_parameter(&ModelConfig {
+        combine: Combine::None,
+        ..t.clone()
+    });
+    grads_reach_every_parameter(&ModelConfig {
         gripper_inputs: true,
         ground_inputs: true,
         rest_inputs: true,

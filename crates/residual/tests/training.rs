@@ -1,6 +1,6 @@
-//! A few hundred tiny training steps on a fixture reduce the rollout loss substantially (also
-//! against the backbone's loss on the same segments, as recorded); resuming from a checkpoint
-//! continues exactly.
+//! Training steps on a fixture reduce the rollout loss substantially: a few hundred steps of
+//! the sampling loop, and 70 steps on fixed segments (also against the backbone's loss on the
+//! same segments, as recorded); resuming from a checkpoint continues exactly.
 
 mod common;
 
@@ -8,8 +8,8 @@ use dataset::{Dataset, Split};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use residual::{
-    ModelConfig, ResidualNet, RolloutOptions, Sample, TrainConfig, TrainLoss, TrainSet, Trainer,
-    clearly_better, hybrid_rollout,
+    ModelConfig, ResidualNet, RolloutOptions, Sample, StartFrom, TrainConfig, TrainLoss, TrainSet,
+    Trainer, clearly_better, hybrid_rollout,
 };
 
 /// Mean rollout loss of `samples` (cm²).
@@ -73,6 +73,45 @@ fn training_reduces_the_loss() {
         "first step: {first} x the backbone's loss"
     );
     assert!(last < 0.6, "last step: {last} x the backbone's loss");
+}
+
+/// The loop `cargo xtask train` runs (segments drawn afresh every step from the fixture's
+/// training episodes, 5-step rollouts from recorded frames, rotation augmentation, clipping,
+/// Adam with cosine decay): 300 steps lower the rollout loss on eight segments of those
+/// episodes, drawn once from recorded frames without augmentation, by more than a quarter
+/// (measured: 13.56 → 8.93 cm²). Recorded starts, because the default guided starts train on
+/// the states the model's own rollouts visit, and on this three-episode fixture those steps do
+/// not lower the loss from recorded frames (13.56 → 14.23 cm², measured).
+#[test]
+fn a_few_hundred_sampled_steps_reduce_the_loss() {
+    let set = common::rope_train_set();
+    let steps = 5;
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    let probe: Vec<Sample> = (0..8)
+        .map(|_| set.sample(&mut rng, steps, false).unwrap())
+        .collect();
+    let cfg = TrainConfig {
+        iterations: 300,
+        decay_steps: 300,
+        lr: 3e-3,
+        seed: 2,
+        start_from: StartFrom::Recorded,
+        ..TrainConfig::default()
+    };
+    assert_eq!((cfg.rollout_steps, cfg.batch), (steps, 2));
+    assert!(cfg.augment);
+    let model = ModelConfig {
+        residual_scale: 0.5,
+        ..ModelConfig::tiny()
+    };
+    let mut trainer = Trainer::new(ResidualNet::new(&model, 2).unwrap(), cfg).unwrap();
+    let before = loss_of(&trainer.net, &set, &probe, steps);
+    for _ in 0..300 {
+        let s = trainer.train_step(&set).unwrap();
+        assert!(s.loss.is_finite() && s.grad_norm.is_finite());
+    }
+    let after = loss_of(&trainer.net, &set, &probe, steps);
+    assert!(after < 0.75 * before, "loss {before:.4} -> {after:.4} cm²");
 }
 
 /// Mean distance (cm) of the tracked particles the tracker saw from the truth, averaged over
