@@ -24,6 +24,7 @@ pub fn scenes_with(split: dataset::Split, config: &SceneConfig) -> Vec<Scene> {
 
 /// The rope backbone the tests diagnose: the reference rope's parameters with the fixture's
 /// spring threshold, m, and springs per particle.
+#[allow(dead_code)] // not every test file uses it
 pub fn backbone() -> springs::SpringParams {
     springs::SpringParams {
         threshold: 0.03,
