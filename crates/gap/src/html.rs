@@ -139,11 +139,24 @@ fn line_chart(series: &[(&str, &str, &[f64])], ylabel: &str) -> String {
             y(v) + 4.0
         );
     }
+    // Ticks at five evenly spaced steps; index i is the (i + 1)-th predicted step.
+    for k in 0..=4usize {
+        let i = (k * (n - 1) + 2) / 4;
+        let _ = write!(
+            s,
+            "<line x1='{0:.1}' y1='{1}' x2='{0:.1}' y2='{2}' stroke='#444'/><text x='{0:.1}' y='{3}' font-size='11' text-anchor='middle'>{4}</text>",
+            x(i),
+            h - b,
+            h - b + 4.0,
+            h - b + 15.0,
+            i + 1
+        );
+    }
     let _ = write!(
         s,
         "<text x='{}' y='{}' font-size='12'>step</text><text x='4' y='{}' font-size='12'>{}</text>",
         w / 2.0,
-        h - 5.0,
+        h + 2.0,
         h + 14.0,
         esc(ylabel)
     );
@@ -460,6 +473,14 @@ pub fn render_html(d: &Diagnosis, title: &str) -> String {
         );
     }
     body += "<h2>Where: error on the object</h2>";
+    if w.skipped_episodes > 0 {
+        let _ = write!(
+            body,
+            "<p class='caution'>{} held-out episode(s) left out of this section: their \
+             tracked count differs from the first episode's.</p>",
+            w.skipped_episodes
+        );
+    }
     body += &heat_map(d);
     body += &table(
         &["region", "range of axis coordinate", "mean error (cm)"],
@@ -514,11 +535,23 @@ pub fn render_html(d: &Diagnosis, title: &str) -> String {
 
 #[cfg(test)]
 mod tests {
-    use super::cm_or_dash;
+    use super::{cm_or_dash, line_chart};
 
     #[test]
     fn empty_bins_show_a_dash_not_nan() {
         assert_eq!(cm_or_dash(f64::NAN), "–");
         assert_eq!(cm_or_dash(1.23456), "1.235");
+    }
+
+    #[test]
+    fn the_time_axis_is_labelled_from_the_first_to_the_last_step() {
+        let v: Vec<f64> = (0..37).map(f64::from).collect();
+        let svg = line_chart(&[("backbone", "#000", &v)], "cm");
+        let ticks: Vec<&str> = svg
+            .split("text-anchor='middle'>")
+            .skip(1)
+            .map(|t| t.split('<').next().unwrap())
+            .collect();
+        assert_eq!(ticks, ["1", "10", "19", "28", "37"]);
     }
 }

@@ -52,6 +52,11 @@ pub struct Where {
     pub phases: Vec<Bin>,
     /// Error against speed, height, strain and distance from the gripper.
     pub state: Vec<Trend>,
+    /// Held-out episodes left out because their tracked count differs from the first
+    /// episode's (the data format forbids such datasets, so 0 for valid data; reports written
+    /// before session 87 lack it and read as 0).
+    #[serde(default)]
+    pub skipped_episodes: usize,
 }
 
 struct Sample {
@@ -197,8 +202,11 @@ pub fn locate(scenes: &[Scene], predictions: &[Vec<Vec<Vec3>>], material: &[f32]
     let mut per_particle = vec![(0.0, 0usize); n];
     let mut per_step = vec![(0.0, 0usize); steps];
     let mut all = Vec::new();
+    let mut skipped_episodes = 0;
     for (scene, pred) in scenes.iter().zip(predictions) {
         if scene.tracked != n {
+            // Per-particle means need one particle numbering across episodes.
+            skipped_episodes += 1;
             continue;
         }
         let cfg = scene.sim_config();
@@ -305,6 +313,7 @@ pub fn locate(scenes: &[Scene], predictions: &[Vec<Vec<Vec3>>], material: &[f32]
         per_step_cm: per_step.iter().map(mean_cm).collect(),
         phases,
         state,
+        skipped_episodes,
     }
 }
 

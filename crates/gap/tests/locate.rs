@@ -142,3 +142,25 @@ fn an_error_proportional_to_speed_shows_in_the_speed_trend() {
         );
     }
 }
+
+#[test]
+fn an_episode_with_another_tracked_count_is_counted_as_skipped() {
+    let mut scenes = common::scenes(Split::Val);
+    assert!(scenes.len() >= 2);
+    let m = material(&scenes);
+    let exact: Vec<Vec<Vec<Vec3>>> = scenes.iter().map(|s| s.truth.clone()).collect();
+    let clean = locate(&scenes, &exact, &m);
+    assert_eq!(clean.skipped_episodes, 0);
+    // The last episode loses its last tracked particle: "where" cannot number its particles
+    // as the first episode's, so it is left out and counted, not silently dropped.
+    let last = scenes.len() - 1;
+    scenes[last].tracked -= 1;
+    let w = locate(&scenes, &exact, &m);
+    assert_eq!(w.skipped_episodes, 1);
+    assert_eq!(w.per_particle_cm.len(), clean.per_particle_cm.len());
+    // And a report written before the field existed still reads, as 0.
+    let mut json = serde_json::to_value(&w).unwrap();
+    json.as_object_mut().unwrap().remove("skipped_episodes");
+    let old: gap::Where = serde_json::from_value(json).unwrap();
+    assert_eq!(old.skipped_episodes, 0);
+}
