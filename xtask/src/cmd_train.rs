@@ -15,6 +15,10 @@ use serde::{Deserialize, Serialize};
 use crate::common::{ProtocolArg, read_backbone};
 use crate::report::write_json;
 
+/// Training stops, with status `diverged`, after this many optimiser steps in a row in which
+/// every rollout diverged (each such step leaves the network unchanged).
+const STALLED_STEPS: usize = 10;
+
 /// `--encoder`.
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]
 pub enum EncoderArg {
@@ -713,6 +717,9 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
         selection = Some(sel);
     }
     let mut diverged_rollouts = 0;
+    // Optimiser steps in a row whose every rollout diverged: such a step has no gradient, so
+    // the network stays as it is and the next batch meets the same network.
+    let mut stalled_steps = 0;
     let mut status = "done".to_string();
     let save = |trainer: &Trainer,
                 loss: &[f64],
@@ -759,6 +766,11 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
         match trainer.train_step(&set) {
             Ok(s) => {
                 diverged_rollouts += s.diverged;
+                stalled_steps = if s.diverged > 0 && s.loss.is_nan() {
+                    stalled_steps + 1
+                } else {
+                    0
+                };
                 loss.push(s.loss);
                 base_loss.push(s.backbone_loss);
                 gnorm.push(s.grad_norm);
@@ -784,6 +796,15 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
                 break;
             }
             Err(e) => return Err(e.into()),
+        }
+        if stalled_steps >= STALLED_STEPS {
+            status = format!(
+                "diverged: every rollout of optimiser steps {}-{} diverged, so the network \
+                 stopped learning (a smaller --residual-scale bounds its corrections)",
+                trainer.step + 1 - STALLED_STEPS,
+                trainer.step
+            );
+            break;
         }
         if args.snapshot_every > 0 && trainer.step % args.snapshot_every == 0 {
             let dir = args
@@ -989,6 +1010,61 @@ mod tests {
             resumed["selection"]["mde_cm"],
             through["selection"]["mde_cm"]
         );
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
+    #[test]
+    fn a_training_whose_rollouts_all_diverge_stops_and_says_so() {
+        // A bound of 100 km/s per step lets the untrained network throw particles beyond the
+        // divergence limit: each such step has no gradient, so the run must stop and say why,
+        // not report `done` or a NaN loss.
+        let dir = std::env::temp_dir().join(format!("pgrd-diverge-{}", std::process::id()));
+        std::fs::remove_dir_all(&dir).ok();
+        let fit = crate::cmd_fit::FitArgs::quick_rope_fixture(dir.clone());
+        crate::cmd_fit::run(&fit).unwrap();
+        let argv = [
+            "train",
+            "--data",
+            crate::cmd_fit::FIXTURE_ROPE,
+            "--run",
+            dir.to_str().unwrap(),
+            "--iterations",
+            "200",
+            "--residual-scale",
+            "1e5",
+            "--quiet",
+        ];
+        let err = run(&parse_train(&argv)).unwrap_err().to_string();
+        assert!(err.contains("diverged"), "{err}");
+        let text = std::fs::read_to_string(dir.join("train.json")).unwrap();
+        assert!(!text.contains("NaN"), "train.json holds a NaN");
+        let report: serde_json::Value = serde_json::from_str(&text).unwrap();
+        let status = report["status"].as_str().unwrap();
+        assert!(status.starts_with("diverged"), "{status}");
+        let steps = report["steps_done"].as_u64().unwrap() as usize;
+        assert!(steps < 200, "ran on for {steps} steps");
+        assert!(report["diverged_rollouts"].as_u64().unwrap() as usize >= STALLED_STEPS);
+        // The losses of steps without a finite rollout are recorded as null, not as numbers.
+        let losses = report["loss_cm2"].as_array().unwrap();
+        assert!(losses.iter().rev().take(STALLED_STEPS).all(|l| l.is_null()));
+        // Evaluating that network names the divergence too, and writes no scores.
+        let eval = crate::cmd_eval::EvalArgs {
+            data: crate::cmd_fit::FIXTURE_ROPE.into(),
+            run: dir.clone(),
+            split: Split::Val,
+            protocol: ProtocolArg::Paper,
+            json: None,
+            plot: None,
+            no_emd: true,
+            visual: false,
+            horizon: None,
+            autograd: false,
+        };
+        let Err(err) = crate::cmd_eval::run(&eval) else {
+            panic!("a network whose every rollout diverges was scored");
+        };
+        let err = err.to_string();
+        assert!(err.contains("diverged"), "{err}");
         std::fs::remove_dir_all(&dir).ok();
     }
 
