@@ -63,8 +63,8 @@ fn the_page_renders_with_every_chart_in_chromium() {
     std::fs::write(&page, gap::render_html(&d, "paper magnet x4")).unwrap();
     let profile = dir.join("profile");
 
-    // The parsed document: the verdict, and the five charts (heat map, before/after, ranking,
-    // error over time; the heat map's colour bar is inside its own svg).
+    // The parsed document: the verdict, and the four charts (heat map with its colour bar,
+    // before/after curves, ranking, error over time).
     let dom = run_chromium(&page, &profile, &["--dump-dom"]);
     let dom = String::from_utf8_lossy(&dom.stdout);
     assert!(
