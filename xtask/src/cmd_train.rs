@@ -1015,9 +1015,9 @@ mod tests {
 
     #[test]
     fn a_training_whose_rollouts_all_diverge_stops_and_says_so() {
-        // A bound of 100 km/s per step lets the untrained network throw particles beyond the
-        // divergence limit: each such step has no gradient, so the run must stop and say why,
-        // not report `done` or a NaN loss.
+        // A bound of 100 km/s per step lets the network's corrections throw particles beyond
+        // the divergence limit from its second step on (measured on this fixture): such steps
+        // have no gradient, so the run must stop and say why, not report `done` or a NaN loss.
         let dir = std::env::temp_dir().join(format!("pgrd-diverge-{}", std::process::id()));
         std::fs::remove_dir_all(&dir).ok();
         let fit = crate::cmd_fit::FitArgs::quick_rope_fixture(dir.clone());
