@@ -66,7 +66,8 @@ pub struct FitArgs {
 }
 
 /// `--bounds`.
-#[derive(Clone, Copy, clap::ValueEnum)]
+#[derive(Clone, Copy, clap::ValueEnum, serde::Serialize)]
+#[serde(rename_all = "kebab-case")]
 pub enum BoundsArg {
     /// damping [1, 1000], stiffness [10, 5e4], threshold [0.002, 0.05] m, springs [4, 200], friction [0.01, 0.5].
     Reference,

@@ -43,7 +43,8 @@ use records::PartialBench;
 pub use records::{BaseStep, BenchCase, BenchSummary, ObjectModel, Rung, SkippedCase};
 
 /// Which cases run on which object.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
+#[serde(rename_all = "kebab-case")]
 pub enum CasePlan {
     /// Every case on every object.
     All,
@@ -122,8 +123,9 @@ pub fn relevant_cases(object: ObjectKind) -> &'static [&'static str] {
     }
 }
 
-/// Arguments of `diagnose-bench`.
-#[derive(clap::Args)]
+/// Arguments of `diagnose-bench`. They are written into `--json` as `settings`, so a bench
+/// report says how it was made (seed, dataset size, ladder, link sweeps, rule, …).
+#[derive(clap::Args, serde::Serialize)]
 pub struct DiagnoseBenchArgs {
     /// Write the objects, cases and summary as JSON here (rewritten after every case with the
     /// objects and cases so far, under the summary's keys; the summary at the end).
@@ -642,6 +644,7 @@ pub fn run_bench(args: &DiagnoseBenchArgs) -> anyhow::Result<BenchSummary> {
         args.network_minutes
     );
     let network_cases = network_cases(args, &cases)?;
+    let settings = records::settings(args)?;
     let mut objects = Vec::new();
     let mut out: Vec<BenchCase> = Vec::new();
     let mut skipped: Vec<SkippedCase> = Vec::new();
@@ -651,6 +654,7 @@ pub fn run_bench(args: &DiagnoseBenchArgs) -> anyhow::Result<BenchSummary> {
             write_json(
                 path,
                 &PartialBench {
+                    settings: &settings,
                     objects,
                     cases: out,
                 },
@@ -859,6 +863,7 @@ pub fn run_bench(args: &DiagnoseBenchArgs) -> anyhow::Result<BenchSummary> {
     }
     let summary = summary::summarise(
         args,
+        settings,
         &cases,
         objects,
         out,

@@ -133,6 +133,9 @@ pub struct SkippedCase {
 /// Bench summary.
 #[derive(Serialize, Debug)]
 pub struct BenchSummary {
+    /// The bench's arguments as run (`DiagnoseBenchArgs`, field names in snake case) and the
+    /// version of pgrd that ran it ([`settings`]).
+    pub settings: serde_json::Value,
     /// Search bounds of the backbone fits (`reference` or `paper`).
     pub bounds: String,
     /// Episodes cut from one recording in every generated dataset.
@@ -169,6 +172,20 @@ pub struct BenchSummary {
 /// What `--json` holds while the bench runs: the summary's `objects` and `cases` so far.
 #[derive(Serialize)]
 pub(super) struct PartialBench<'a> {
+    pub settings: &'a serde_json::Value,
     pub objects: &'a [ObjectModel],
     pub cases: &'a [BenchCase],
+}
+
+/// The bench's arguments as JSON, plus `pgrd_version` (the xtask package's version): what
+/// `--json` records as `settings`, so that a stored bench says how it was made.
+pub fn settings(args: &super::DiagnoseBenchArgs) -> anyhow::Result<serde_json::Value> {
+    let mut v = serde_json::to_value(args)?;
+    if let Some(map) = v.as_object_mut() {
+        map.insert(
+            "pgrd_version".into(),
+            env!("CARGO_PKG_VERSION").to_string().into(),
+        );
+    }
+    Ok(v)
 }

@@ -10,6 +10,7 @@ use super::records::{BenchCase, BenchSummary, ObjectModel, SkippedCase};
 /// summary `--json` keeps. `cases` are the bench's case names in the order of the matrix's rows.
 pub(super) fn summarise(
     args: &DiagnoseBenchArgs,
+    settings: serde_json::Value,
     cases: &[String],
     objects: Vec<ObjectModel>,
     out: Vec<BenchCase>,
@@ -71,6 +72,7 @@ pub(super) fn summarise(
         right(&nones, false),
     );
     let summary = BenchSummary {
+        settings,
         bounds: args.bounds.name().to_string(),
         episodes_per_recording: args.episodes_per_recording,
         in_library_accuracy: share(&lib_reached),

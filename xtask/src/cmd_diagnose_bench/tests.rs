@@ -175,9 +175,17 @@ fn a_raced_bench_races_the_cases_not_the_base_search_and_flags_raced_out_truths(
             "3",
             "--case-seed",
             "7",
+            "--json",
+            &format!("{work}/bench.json"),
         ],
     );
     let summary = run_bench(&args).unwrap();
+    // The stored bench says how it was made.
+    let text = std::fs::read_to_string(dir.join("bench.json")).unwrap();
+    let stored: serde_json::Value = serde_json::from_str(&text).unwrap();
+    assert_eq!(stored["settings"]["case_seed"], 7);
+    assert_eq!(stored["settings"]["race"], 1);
+    assert_eq!(stored["settings"], summary.settings);
     let read = |report: &str| -> Diagnosis {
         let text = std::fs::read_to_string(dir.join(report).join("report.json")).unwrap();
         serde_json::from_str(&text).unwrap()
@@ -337,4 +345,28 @@ fn the_nonlinear_candidate_reaches_every_rungs_compression_ratio() {
             );
         }
     }
+}
+
+#[test]
+fn a_bench_records_its_settings() {
+    let args = bench_args(&[
+        "--seed",
+        "5",
+        "--link-sweeps",
+        "16",
+        "--plan",
+        "visible",
+        "--bounds",
+        "paper",
+        "--second-round",
+    ]);
+    let s = records::settings(&args).unwrap();
+    assert_eq!(s["seed"], 5);
+    assert_eq!(s["case_seed"], serde_json::Value::Null, "not given");
+    assert_eq!(s["link_sweeps"], 16);
+    assert_eq!(s["plan"], "visible");
+    assert_eq!(s["bounds"], "paper");
+    assert_eq!(s["second_round"], true);
+    assert_eq!(s["scales"], "1,4,16,64", "defaults are recorded too");
+    assert_eq!(s["pgrd_version"], env!("CARGO_PKG_VERSION"));
 }
