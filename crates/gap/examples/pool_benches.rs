@@ -13,6 +13,10 @@
 //! named from every report, e.g. the `none` replicates of one bench and not of another:
 //! `--classes in-library,none a.json --classes out-of-library b.json` (a `--classes` applies
 //! to the reports after it).
+//!
+//! Reports written since session 88 carry their bench's `settings`; when the pooled ones
+//! differ in a setting that changes what a case is (the world's link sweeps, the verdict
+//! rule's floor, the second round, the dataset's size), a warning names it.
 
 use std::collections::BTreeMap;
 
@@ -32,9 +36,36 @@ struct Case {
 
 const CLASSES: [&str; 3] = ["in-library", "none", "out-of-library"];
 
-fn cases_of(path: &str, classes: &[String]) -> anyhow::Result<Vec<Case>> {
+/// Settings that change what a bench's case is: pooling reports that differ in one mixes
+/// two benchmarks.
+const DEFINING: [&str; 5] = [
+    "link_sweeps",
+    "min_shrinkage",
+    "second_round",
+    "episodes",
+    "val",
+];
+
+/// A report's [`DEFINING`] settings in that order (`None` for a report written before they
+/// were recorded).
+type Defining = Option<Vec<Value>>;
+
+fn defining_settings(report: &Value) -> Defining {
+    let s = report.get("settings")?;
+    Some(
+        DEFINING
+            .iter()
+            .map(|k| s.get(*k).cloned().unwrap_or(Value::Null))
+            .collect(),
+    )
+}
+
+fn read_report(path: &str) -> anyhow::Result<Value> {
     let text = std::fs::read_to_string(path).with_context(|| path.to_string())?;
-    let report: Value = serde_json::from_str(&text).with_context(|| format!("parsing {path}"))?;
+    serde_json::from_str(&text).with_context(|| format!("parsing {path}"))
+}
+
+fn cases_of(path: &str, report: &Value, classes: &[String]) -> anyhow::Result<Vec<Case>> {
     let Some(cases) = report.get("cases").and_then(Value::as_array) else {
         bail!("{path}: no `cases` array (not a `diagnose-bench --json` report)");
     };
@@ -70,6 +101,7 @@ fn main() -> anyhow::Result<()> {
     let mut classes: Vec<String> = CLASSES.iter().map(|c| c.to_string()).collect();
     let mut cases = Vec::new();
     let mut reports = 0;
+    let mut settings = Vec::new();
     let mut args = std::env::args().skip(1);
     while let Some(arg) = args.next() {
         if arg == "--classes" {
@@ -79,7 +111,9 @@ fn main() -> anyhow::Result<()> {
                 bail!("unknown class {bad:?} (in-library, none, out-of-library)");
             }
         } else {
-            cases.extend(cases_of(&arg, &classes)?);
+            let report = read_report(&arg)?;
+            cases.extend(cases_of(&arg, &report, &classes)?);
+            settings.push((arg, defining_settings(&report)));
             reports += 1;
         }
     }
@@ -87,6 +121,7 @@ fn main() -> anyhow::Result<()> {
         bail!("usage: pool_benches [--classes a,b] <bench.json>...");
     }
     println!("{reports} reports, {} counted cases", cases.len());
+    warn_on_mixed_settings(&settings);
     for class in CLASSES {
         let of: Vec<&Case> = cases.iter().filter(|c| c.class == class).collect();
         let right: Vec<&&Case> = of.iter().filter(|c| c.verdict == c.expected).collect();
@@ -143,4 +178,38 @@ fn main() -> anyhow::Result<()> {
         println!("| {r} | {} | {right} / {} |", cells.join(" | "), of.len());
     }
     Ok(())
+}
+
+/// Prints a warning for each defining setting the pooled reports disagree on (reports without
+/// recorded settings are listed, not compared).
+fn warn_on_mixed_settings(settings: &[(String, Defining)]) {
+    let recorded: Vec<(&String, &Vec<Value>)> = settings
+        .iter()
+        .filter_map(|(p, s)| s.as_ref().map(|s| (p, s)))
+        .collect();
+    let unrecorded: Vec<&str> = settings
+        .iter()
+        .filter(|(_, s)| s.is_none())
+        .map(|(p, _)| p.as_str())
+        .collect();
+    if !unrecorded.is_empty() && !recorded.is_empty() {
+        println!(
+            "note: settings not recorded in {} (written before session 88)",
+            unrecorded.join(", ")
+        );
+    }
+    for (k, key) in DEFINING.iter().enumerate() {
+        let mut values: Vec<&Value> = recorded.iter().map(|(_, s)| &s[k]).collect();
+        values.dedup();
+        if values.len() > 1 {
+            let each: Vec<String> = recorded
+                .iter()
+                .map(|(p, s)| format!("{p}: {}", s[k]))
+                .collect();
+            println!(
+                "warning: the pooled reports differ in `{key}` ({})",
+                each.join(", ")
+            );
+        }
+    }
 }
