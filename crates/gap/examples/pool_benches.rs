@@ -14,9 +14,11 @@
 //! `--classes in-library,none a.json --classes out-of-library b.json` (a `--classes` applies
 //! to the reports after it).
 //!
-//! Reports written since session 88 carry their bench's `settings`; when the pooled ones
-//! differ in a setting that changes what a case is (the world's link sweeps, the verdict
-//! rule's floor, the second round, the dataset's size), a warning names it.
+//! Reports written since session 88 carry their bench's `settings`; when the reports pooled
+//! under one `--classes` differ in a setting that changes what a case is (the world's link
+//! sweeps, the verdict rule's floor, the second round, the dataset's size), a warning names it.
+//! Reports under different `--classes` are not compared: an in-library bench at 12 / 8
+//! episodes pooled with out-of-library ones at 100 / 20 is the documented use.
 
 use std::collections::BTreeMap;
 
@@ -101,19 +103,25 @@ fn main() -> anyhow::Result<()> {
     let mut classes: Vec<String> = CLASSES.iter().map(|c| c.to_string()).collect();
     let mut cases = Vec::new();
     let mut reports = 0;
-    let mut settings = Vec::new();
+    // The reports' defining settings, one group per `--classes`.
+    let mut groups: Vec<Vec<(String, Defining)>> = vec![Vec::new()];
     let mut args = std::env::args().skip(1);
     while let Some(arg) = args.next() {
         if arg == "--classes" {
             let list = args.next().context("--classes needs a list")?;
             classes = list.split(',').map(|c| c.trim().to_string()).collect();
+            if groups.last().is_some_and(|g| !g.is_empty()) {
+                groups.push(Vec::new());
+            }
             if let Some(bad) = classes.iter().find(|c| !CLASSES.contains(&c.as_str())) {
                 bail!("unknown class {bad:?} (in-library, none, out-of-library)");
             }
         } else {
             let report = read_report(&arg)?;
             cases.extend(cases_of(&arg, &report, &classes)?);
-            settings.push((arg, defining_settings(&report)));
+            if let Some(group) = groups.last_mut() {
+                group.push((arg, defining_settings(&report)));
+            }
             reports += 1;
         }
     }
@@ -121,7 +129,9 @@ fn main() -> anyhow::Result<()> {
         bail!("usage: pool_benches [--classes a,b] <bench.json>...");
     }
     println!("{reports} reports, {} counted cases", cases.len());
-    warn_on_mixed_settings(&settings);
+    for group in &groups {
+        warn_on_mixed_settings(group);
+    }
     for class in CLASSES {
         let of: Vec<&Case> = cases.iter().filter(|c| c.class == class).collect();
         let right: Vec<&&Case> = of.iter().filter(|c| c.verdict == c.expected).collect();
@@ -180,8 +190,8 @@ fn main() -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Prints a warning for each defining setting the pooled reports disagree on (reports without
-/// recorded settings are listed, not compared).
+/// Prints a warning for each defining setting the reports of one `--classes` group disagree
+/// on (reports without recorded settings are listed, not compared).
 fn warn_on_mixed_settings(settings: &[(String, Defining)]) {
     let recorded: Vec<(&String, &Vec<Value>)> = settings
         .iter()
