@@ -476,7 +476,9 @@ fn base_model(
         m.train_mde_without_effect_cm,
         m.wall_s
     );
-    // The base model as a run's backbone file, for the networks of `--network-minutes`.
+    // The base model as a run's backbone file, for the networks of `--network-minutes`, and
+    // as a run directory beside the data (`<object>-base`), so that any case can be diagnosed
+    // again with other settings: `diagnose --data <work>/<case> --run <work>/<object>-base`.
     let file = BackboneFile {
         model: "spring-mass".into(),
         dataset: dir.display().to_string(),
@@ -491,6 +493,9 @@ fn base_model(
         substep: args.substep,
         material_springs: false,
     };
+    let run = args.work.join(format!("{object}-base"));
+    std::fs::create_dir_all(&run)?;
+    write_json(&backbone_path(&run), &file)?;
     Ok((m, base, file))
 }
 

@@ -219,6 +219,45 @@ fn a_raced_bench_races_the_cases_not_the_base_search_and_flags_raced_out_truths(
             case.diagnose_estimated_s
         );
     }
+    // The object's base model is kept as a run directory, and `diagnose` run from it on a
+    // case's data with the case's settings gives the case's report again.
+    let run = crate::common::read_backbone(&dir.join("rope-base")).unwrap();
+    assert_eq!(run.params, summary.objects[0].model);
+    #[derive(clap::Parser)]
+    struct Diag {
+        #[command(flatten)]
+        args: crate::cmd_diagnose::DiagnoseArgs,
+    }
+    let path = |p: &str| dir.join(p).display().to_string();
+    let (data, base_run, out) = (path("rope-drag-x1"), path("rope-base"), path("replay"));
+    let argv = [
+        "diagnose",
+        "--data",
+        &data,
+        "--run",
+        &base_run,
+        "--out",
+        &out,
+        "--race",
+        "1",
+        "--samples",
+        "1",
+        "--seed",
+        "7",
+        "--generations",
+        "2",
+        "--probe-factor",
+        "3",
+        "--budget-min",
+        "0",
+        "--no-network",
+        "--quiet",
+    ];
+    let replay_args = <Diag as clap::Parser>::try_parse_from(argv).unwrap().args;
+    let replay = crate::cmd_diagnose::run(&replay_args).unwrap();
+    let stored = read("rope-drag-x1/report");
+    assert_eq!(replay.control.heldout_mde_cm, stored.control.heldout_mde_cm);
+    assert_eq!(replay.verdict, stored.verdict);
     std::fs::remove_dir_all(&dir).ok();
 }
 
