@@ -14,19 +14,13 @@
 //! record their settings; other differences in settings are listed, since they are usually
 //! what is being compared.
 
+mod bench_report;
+
 use std::collections::BTreeMap;
 
-use anyhow::{Context, bail};
+use anyhow::bail;
+use bench_report::{RECOVERED_GOAL, counted, read_report};
 use serde_json::Value;
-
-fn read_report(path: &str) -> anyhow::Result<Value> {
-    let text = std::fs::read_to_string(path).with_context(|| path.to_string())?;
-    let report: Value = serde_json::from_str(&text).with_context(|| format!("parsing {path}"))?;
-    if report.get("cases").and_then(Value::as_array).is_none() {
-        bail!("{path}: no `cases` array (not a `diagnose-bench --json` report)");
-    }
-    Ok(report)
-}
 
 /// A case's key: object, withheld effect, strength.
 type Key = (String, String, String);
@@ -73,21 +67,23 @@ fn counts(report: &Value) -> Counts {
         out_of_library: (0, 0),
     };
     for c in report["cases"].as_array().into_iter().flatten() {
+        if !counted(c) {
+            continue;
+        }
         let right = text(c, "verdict") == text(c, "expected");
         let tally = |t: &mut (usize, usize)| {
             t.0 += usize::from(right);
             t.1 += 1;
         };
         match text(c, "class").as_str() {
-            "in-library" if c["target_reached"].as_bool() == Some(true) => {
+            "in-library" => {
                 tally(&mut n.in_library);
-                if right && number(c, "recovered").is_some_and(|r| r >= 0.7) {
+                if right && number(c, "recovered").is_some_and(|r| r >= RECOVERED_GOAL) {
                     n.recovered_70 += 1;
                 }
             }
             "none" => tally(&mut n.none),
-            "out-of-library" => tally(&mut n.out_of_library),
-            _ => {}
+            _ => tally(&mut n.out_of_library),
         }
     }
     n

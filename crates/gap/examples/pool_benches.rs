@@ -20,9 +20,12 @@
 //! Reports under different `--classes` are not compared: an in-library bench at 12 / 8
 //! episodes pooled with out-of-library ones at 100 / 20 is the documented use.
 
+mod bench_report;
+
 use std::collections::BTreeMap;
 
 use anyhow::{Context, bail};
+use bench_report::{RECOVERED_GOAL, counted, read_report};
 use gap::Candidate;
 use serde_json::Value;
 
@@ -62,11 +65,6 @@ fn defining_settings(report: &Value) -> Defining {
     )
 }
 
-fn read_report(path: &str) -> anyhow::Result<Value> {
-    let text = std::fs::read_to_string(path).with_context(|| path.to_string())?;
-    serde_json::from_str(&text).with_context(|| format!("parsing {path}"))
-}
-
 fn cases_of(path: &str, report: &Value, classes: &[String]) -> anyhow::Result<Vec<Case>> {
     let Some(cases) = report.get("cases").and_then(Value::as_array) else {
         bail!("{path}: no `cases` array (not a `diagnose-bench --json` report)");
@@ -80,13 +78,7 @@ fn cases_of(path: &str, report: &Value, classes: &[String]) -> anyhow::Result<Ve
     let mut out = Vec::new();
     for c in cases {
         let class = field(c, "class")?;
-        let reached = c.get("target_reached").and_then(Value::as_bool) == Some(true);
-        let counted = match class.as_str() {
-            "in-library" => reached,
-            "none" | "out-of-library" => true,
-            _ => false,
-        };
-        if counted && classes.contains(&class) {
+        if counted(c) && classes.contains(&class) {
             out.push(Case {
                 truth: field(c, "truth")?,
                 expected: field(c, "expected")?,
@@ -139,7 +131,7 @@ fn main() -> anyhow::Result<()> {
         if class == "in-library" {
             let recovered = right
                 .iter()
-                .filter(|c| c.recovered.is_some_and(|r| r >= 0.7))
+                .filter(|c| c.recovered.is_some_and(|r| r >= RECOVERED_GOAL))
                 .count();
             print!(", {recovered} of the right recovering >= 70 % of their gap");
         }
