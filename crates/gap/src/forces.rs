@@ -280,6 +280,18 @@ impl StrainStiffening {
 /// in `(threshold, 2 threshold]` (the second ring of neighbours), at most
 /// [`BENDING_PER_PARTICLE`] nearest per particle.
 ///
+/// On a chain (the model knows its particles' order along a centreline,
+/// [`springs::ModelSetup::chain`]: a DEFORM cable's markers and the particles between them)
+/// bending acts on the centreline's curvature instead: each three consecutive particles a, b,
+/// c with rest segment lengths l₁, l₂ store `E = ½ k_b |(x_c − x_b)/l₂ − (x_b − x_a)/l₁|²`,
+/// zero for a straight chain, with `k_b = κ k l̄²` (l̄ the mean rest segment length), a
+/// discrete form of `½ EI κ²` (the bending energy of an elastic rod, as in discrete elastic
+/// rods). Springs to a second ring bend a nearly straight chain only to second order (the
+/// chord of a slightly bent pair barely shortens) and pull each episode's chain towards its
+/// own first frame; the curvature form is linear in the bend and straight at rest, as a cable
+/// is (session 92, `docs/gap-log.md`). Each triplet's `k_b` follows a stiffness field set up
+/// before it by its middle particle's factor; it stays linear under a spring law.
+///
 /// A bending spring follows the material at its ends: `k` is scaled by the geometric mean of
 /// its two particles' factors, each the mean factor (spring stiffness over the fitted
 /// stiffness) of the backbone's springs at that particle when this effect is set up. So a
@@ -305,6 +317,11 @@ pub struct BendingSprings {
     rest: Vec<f32>,
     /// Per pair, N/m.
     stiffness: Vec<f32>,
+    /// On a chain: consecutive triplets along it, the inverse rest lengths of their two
+    /// segments (1/m) and their bending stiffness `κ k l̄²` (N·m).
+    triplets: Vec<[u32; 3]>,
+    inv_lengths: Vec<[f32; 2]>,
+    curvature_stiffness: Vec<f32>,
 }
 
 /// Most bending springs started from one particle.
@@ -324,6 +341,67 @@ impl BendingSprings {
         self.stiffening = Some(stiffening);
         self
     }
+
+    /// The curvature form along `order` (at least three particles).
+    fn set_up_chain(&mut self, model: &ModelSetup<'_>, order: &[u32]) {
+        let x = model.rest_positions;
+        let factors = particle_factors(model);
+        self.pairs.clear();
+        self.rest.clear();
+        self.stiffness.clear();
+        self.triplets = order.windows(3).map(|w| [w[0], w[1], w[2]]).collect();
+        let length = |a: u32, b: u32| x[a as usize].distance(x[b as usize]);
+        let total: f32 = order.windows(2).map(|w| length(w[0], w[1])).sum();
+        let mean = total / (order.len() - 1) as f32;
+        // A segment of zero rest length would divide by zero; a tenth of the mean stands in.
+        let inv = |a: u32, b: u32| 1.0 / length(a, b).max(0.1 * mean).max(f32::MIN_POSITIVE);
+        self.inv_lengths = self
+            .triplets
+            .iter()
+            .map(|t| [inv(t[0], t[1]), inv(t[1], t[2])])
+            .collect();
+        let base = self.relative_stiffness.max(0.0) * model.params.stiffness * mean * mean;
+        self.curvature_stiffness = self
+            .triplets
+            .iter()
+            .map(|t| base * factors[t[1] as usize])
+            .collect();
+    }
+
+    /// Adds the curvature form's forces at positions `x` (or its transpose applied to `x`).
+    fn curvature_forces(&self, x: &[Vec3A], out: &mut [Vec3A]) {
+        for ((t, [i1, i2]), k) in self
+            .triplets
+            .iter()
+            .zip(&self.inv_lengths)
+            .zip(&self.curvature_stiffness)
+        {
+            let (a, b, c) = (t[0] as usize, t[1] as usize, t[2] as usize);
+            let d = ((x[c] - x[b]) * *i2 - (x[b] - x[a]) * *i1) * *k;
+            out[a] -= d * *i1;
+            out[b] += d * (i1 + i2);
+            out[c] -= d * *i2;
+        }
+    }
+}
+
+/// Each particle's mean factor of the springs at it (spring stiffness over the fitted
+/// stiffness; unchanged springs give exactly 1, a sum of ones over their count; 1 at a
+/// particle without springs).
+fn particle_factors(model: &ModelSetup<'_>) -> Vec<f32> {
+    let n = model.rest_positions.len();
+    let k0 = model.params.stiffness;
+    let (mut sum, mut count) = (vec![0.0f32; n], vec![0u32; n]);
+    for (k, [a, b]) in model.stiffness.iter().zip(model.springs) {
+        for i in [*a as usize, *b as usize] {
+            sum[i] += if k0 > 0.0 { *k / k0 } else { 1.0 };
+            count[i] += 1;
+        }
+    }
+    sum.iter()
+        .zip(&count)
+        .map(|(s, &c)| if c == 0 { 1.0 } else { s / c as f32 })
+        .collect()
 }
 
 impl Effect for BendingSprings {
@@ -336,6 +414,10 @@ impl Effect for BendingSprings {
             &[("relative_stiffness", self.relative_stiffness)],
         )?;
         let x = model.rest_positions;
+        if let Some(order) = model.chain.filter(|c| c.len() >= 3) {
+            self.set_up_chain(model, order);
+            return Ok(());
+        }
         let r = model.params.threshold;
         let mut pairs = std::collections::BTreeSet::new();
         for (i, p) in x.iter().enumerate() {
@@ -356,25 +438,16 @@ impl Effect for BendingSprings {
             .iter()
             .map(|[a, b]| x[*a as usize].distance(x[*b as usize]))
             .collect();
-        let k0 = model.params.stiffness;
-        let (mut sum, mut count) = (vec![0.0f32; x.len()], vec![0u32; x.len()]);
-        for (k, [a, b]) in model.stiffness.iter().zip(model.springs) {
-            for i in [*a as usize, *b as usize] {
-                sum[i] += if k0 > 0.0 { *k / k0 } else { 1.0 };
-                count[i] += 1;
-            }
-        }
-        // Unchanged springs give exactly 1 (a sum of ones over their count).
-        let factor = |i: usize| match count[i] {
-            0 => 1.0,
-            c => sum[i] / c as f32,
-        };
-        let base = self.relative_stiffness.max(0.0) * k0;
+        let factors = particle_factors(model);
+        let base = self.relative_stiffness.max(0.0) * model.params.stiffness;
         self.stiffness = self
             .pairs
             .iter()
-            .map(|[a, b]| base * (factor(*a as usize) * factor(*b as usize)).sqrt())
+            .map(|[a, b]| base * (factors[*a as usize] * factors[*b as usize]).sqrt())
             .collect();
+        self.triplets.clear();
+        self.inv_lengths.clear();
+        self.curvature_stiffness.clear();
         Ok(())
     }
     fn stability(&self, _backbone: &Backbone, row: &mut [f32], _damping: &mut [f32]) {
@@ -382,6 +455,18 @@ impl Effect for BendingSprings {
         for ([a, b], k) in self.pairs.iter().zip(&self.stiffness) {
             row[*a as usize] += 2.0 * factor * k;
             row[*b as usize] += 2.0 * factor * k;
+        }
+        // The curvature energy's Hessian rows, k_b |∂D/∂x_i| Σ_j |∂D/∂x_j| (Gershgorin).
+        for ((t, [i1, i2]), k) in self
+            .triplets
+            .iter()
+            .zip(&self.inv_lengths)
+            .zip(&self.curvature_stiffness)
+        {
+            let sum = 2.0 * (i1 + i2);
+            row[t[0] as usize] += k * i1 * sum;
+            row[t[1] as usize] += k * (i1 + i2) * sum;
+            row[t[2] as usize] += k * i2 * sum;
         }
     }
     fn add_forces(
@@ -394,6 +479,7 @@ impl Effect for BendingSprings {
         if self.relative_stiffness <= 0.0 {
             return;
         }
+        self.curvature_forces(ctx.x, force);
         for (([a, b], l0), k) in self.pairs.iter().zip(&self.rest).zip(&self.stiffness) {
             let (a, b) = (*a as usize, *b as usize);
             let d = ctx.x[b] - ctx.x[a];
@@ -427,6 +513,9 @@ impl Effect for BendingSprings {
         if self.relative_stiffness <= 0.0 {
             return;
         }
+        // The curvature forces are linear in x with a symmetric Jacobian (−k_b JᵀJ): its
+        // transpose applied to λ is the same stencil applied to λ.
+        self.curvature_forces(lambda, grad_x);
         for (([a, b], l0), k) in self.pairs.iter().zip(&self.rest).zip(&self.stiffness) {
             let (a, b) = (*a as usize, *b as usize);
             let d = ctx.x[b] - ctx.x[a];

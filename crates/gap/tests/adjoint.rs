@@ -43,6 +43,15 @@ fn rope() -> (Vec<Vec3>, Vec<i32>) {
 }
 
 fn backbone(effect: Box<dyn Effect>) -> (Backbone, State, Actions) {
+    backbone_on(effect, None)
+}
+
+/// The rope as a chain: its particles in index order along it (`BackboneOptions::chain`).
+fn chain_backbone(effect: Box<dyn Effect>) -> (Backbone, State, Actions) {
+    backbone_on(effect, Some((0..40u32).collect()))
+}
+
+fn backbone_on(effect: Box<dyn Effect>, chain: Option<Arc<[u32]>>) -> (Backbone, State, Actions) {
     let (x, held) = rope();
     let params = SpringParams {
         stiffness: 2000.0,
@@ -53,6 +62,7 @@ fn backbone(effect: Box<dyn Effect>) -> (Backbone, State, Actions) {
     };
     let options = BackboneOptions {
         effects: vec![effect],
+        chain,
         ..Default::default()
     };
     let bb = Backbone::with_options(&x, &held, params, SimConfig::default(), options).unwrap();
@@ -213,6 +223,18 @@ fn leaving_a_transpose_out_fails_the_check() {
         let m = mismatch(&bb, &state, &actions);
         assert!(m > 3e-2, "{name} without its transpose: mismatch only {m}");
     }
+}
+
+#[test]
+fn bending_along_a_chain_has_the_transpose_of_its_forces() {
+    let (bb, state, actions) = chain_backbone(Box::new(BendingSprings::new(0.8)));
+    assert!(bb.held_fixed_effects().is_empty());
+    let m = mismatch(&bb, &state, &actions);
+    assert!(m < 1e-2, "relative mismatch {m}");
+    let (bb, state, actions) =
+        chain_backbone(Box::new(Untransposed(Box::new(BendingSprings::new(0.8)))));
+    let m = mismatch(&bb, &state, &actions);
+    assert!(m > 3e-2, "without its transpose: mismatch only {m}");
 }
 
 #[test]

@@ -54,6 +54,7 @@ fn set_up(
             stiffness: &mut stiffness,
             damping: &mut damping,
             masses: &mut masses,
+            chain: None,
         })
         .unwrap();
     }

@@ -126,6 +126,21 @@ pub struct Scene {
     carry_occluded: bool,
     unseen: Option<Arc<MaterialNeighbours>>,
     material_pairs: Option<Arc<MaterialPairs>>,
+    /// For a `chain` dataset with hidden particles: every particle in order along the cable.
+    chain: Option<Arc<[u32]>>,
+}
+
+/// The particles of a densified chain in order along it: marker i, then the `per_gap`
+/// particles [`densify_chain`] put after the markers for gap i, then marker i + 1, ...
+fn chain_order(markers: usize, per_gap: usize) -> Arc<[u32]> {
+    let mut order = Vec::with_capacity(markers + per_gap * markers.saturating_sub(1));
+    for i in 0..markers {
+        order.push(i as u32);
+        if i + 1 < markers {
+            order.extend((0..per_gap).map(|k| (markers + i * per_gap + k) as u32));
+        }
+    }
+    order.into()
 }
 
 impl Scene {
@@ -176,8 +191,10 @@ impl Scene {
         let v0: Vec<Vec3> = x0.iter().zip(&xm).map(|(a, b)| (*a - *b) * fps).collect();
         let mut x = x0;
         let mut v = v0;
+        let mut chain = None;
         match meta.structure {
             Structure::Chain if config.chain_hidden_per_gap > 0 => {
+                chain = Some(chain_order(x.len(), config.chain_hidden_per_gap));
                 let (hx, hv) = densify_chain(&x, &v, config.chain_hidden_per_gap);
                 held.extend(std::iter::repeat_n(-1, hx.len()));
                 x.extend(hx);
@@ -245,6 +262,7 @@ impl Scene {
             carry_occluded: config.carry_occluded,
             unseen: config.unseen.clone(),
             material_pairs: config.material_pairs.clone(),
+            chain,
         })
     }
 
@@ -305,7 +323,8 @@ impl Scene {
     /// The backbone for this scene: springs from the start frame (between material neighbours
     /// only, when the scene's configuration has [`SceneConfig::material_pairs`] and `options`
     /// no filter of its own); `options` carries per-particle masses and effects (none by
-    /// default).
+    /// default). A chain scene hands its order along the cable to the effects
+    /// ([`BackboneOptions::chain`]) unless `options` has one.
     pub fn backbone(
         &self,
         params: &SpringParams,
@@ -318,6 +337,9 @@ impl Scene {
             options.pair_filter = Some(Arc::new(MaterialSprings {
                 pairs: pairs.clone(),
             }));
+        }
+        if options.chain.is_none() {
+            options.chain = self.chain.clone();
         }
         Ok(Backbone::with_options(
             &self.init.x,
@@ -373,6 +395,7 @@ impl Scene {
             carry_occluded: self.carry_occluded,
             unseen: self.unseen.clone(),
             material_pairs: self.material_pairs.clone(),
+            chain: self.chain.clone(),
         })
     }
 
@@ -732,6 +755,22 @@ mod tests {
         assert!((hx[1] - Vec3::new(0.5, 0.0, 0.0)).length() < 1e-6);
         assert!((hx[4] - Vec3::new(1.0, 0.5, 0.0)).length() < 1e-6);
         assert!((hv[4] - Vec3::Z * 0.5).length() < 1e-6);
+    }
+
+    #[test]
+    fn the_chain_order_walks_the_densified_cable_end_to_end() {
+        let x = [Vec3::ZERO, Vec3::X, Vec3::new(1.0, 1.0, 0.0)];
+        let v = [Vec3::ZERO; 3];
+        let (hx, _) = densify_chain(&x, &v, 3);
+        let all: Vec<Vec3> = x.iter().copied().chain(hx).collect();
+        let order = chain_order(3, 3);
+        assert_eq!(order.len(), all.len());
+        assert_eq!((order[0], order[4], order[8]), (0, 1, 2));
+        // Every step along the order is one hidden spacing (a quarter of a unit segment).
+        for w in order.windows(2) {
+            let d = all[w[0] as usize].distance(all[w[1] as usize]);
+            assert!((d - 0.25).abs() < 1e-6, "{w:?}: {d}");
+        }
     }
 
     #[test]

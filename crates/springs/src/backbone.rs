@@ -19,6 +19,10 @@ pub struct BackboneOptions {
     /// Pairs that may not be joined by a spring even within the threshold
     /// ([`Topology::build_with`]); `None` joins every pair within it, as the reference does.
     pub pair_filter: Option<std::sync::Arc<dyn crate::PairFilter>>,
+    /// The particles in order along the centreline, for an object that is a chain (a
+    /// cable's markers and the particles between them); handed to every effect's setup
+    /// ([`crate::ModelSetup::chain`]). Every index must name a particle, none twice.
+    pub chain: Option<std::sync::Arc<[u32]>>,
 }
 
 /// A spring-mass model of one object: topology, parameters and a fixed substep.
@@ -156,6 +160,24 @@ impl Backbone {
         };
         let mut stiffness = vec![params.stiffness; springs.len()];
         let mut damping = vec![params.damping; springs.len()];
+        if let Some(chain) = &options.chain {
+            let mut seen = vec![false; n];
+            for &p in chain.iter() {
+                let reason = match seen.get_mut(p as usize) {
+                    Some(s) if !*s => {
+                        *s = true;
+                        continue;
+                    }
+                    Some(_) => "a particle appears twice in the chain order",
+                    None => "the chain order names a particle the model does not have",
+                };
+                return Err(SimError::InvalidParameter {
+                    name: "chain",
+                    value: f64::from(p),
+                    reason,
+                });
+            }
+        }
         let mut effects = options.effects;
         for e in &mut effects {
             e.setup(&mut ModelSetup {
@@ -167,6 +189,7 @@ impl Backbone {
                 stiffness: &mut stiffness,
                 damping: &mut damping,
                 masses: &mut masses,
+                chain: options.chain.as_deref(),
             })?;
         }
         check_nonneg("masses", &masses, true)?;

@@ -44,6 +44,10 @@ pub struct ModelSetup<'a> {
     pub damping: &'a mut [f32],
     /// Mass per particle, kg (must stay finite and > 0).
     pub masses: &'a mut [f32],
+    /// The particles in order along the centreline when the object is a chain (a cable's
+    /// markers with the particles between them; [`crate::BackboneOptions::chain`]), else
+    /// `None`. Effects that act along a curve (bending) use it instead of neighbourhoods.
+    pub chain: Option<&'a [u32]>,
 }
 
 /// What an effect sees during a substep.
