@@ -353,6 +353,13 @@ impl BendingSprings {
         let length = |a: u32, b: u32| x[a as usize].distance(x[b as usize]);
         let total: f32 = order.windows(2).map(|w| length(w[0], w[1])).sum();
         let mean = total / (order.len() - 1) as f32;
+        if !(mean.is_finite() && mean > 0.0) {
+            // A chain collapsed to a point has no curvature to keep: no triplets.
+            self.triplets.clear();
+            self.inv_lengths.clear();
+            self.curvature_stiffness.clear();
+            return;
+        }
         // A segment of zero rest length would divide by zero; a tenth of the mean stands in.
         let inv = |a: u32, b: u32| 1.0 / length(a, b).max(0.1 * mean).max(f32::MIN_POSITIVE);
         self.inv_lengths = self

@@ -33,8 +33,8 @@ fn straight() -> (Vec<Vec3>, Arc<[u32]>) {
     (x, order.into())
 }
 
-/// Forces of the chain-form bending (κ = 0.5) at positions `at`, the chain built from `rest`.
-fn forces(rest: &[Vec3], order: &Arc<[u32]>, at: &[Vec3]) -> Vec<Vec3A> {
+/// The chain-form bending (κ = 0.5) set up on `rest` along `order`, with a plain backbone.
+fn set_up(rest: &[Vec3], order: &Arc<[u32]>) -> (Backbone, BendingSprings) {
     let held = vec![-1; rest.len()];
     let p = params();
     let bb =
@@ -58,6 +58,12 @@ fn forces(rest: &[Vec3], order: &Arc<[u32]>, at: &[Vec3]) -> Vec<Vec3A> {
             chain: Some(order),
         })
         .unwrap();
+    (bb, bending)
+}
+
+/// Forces of the chain-form bending at positions `at`, the chain built from `rest`.
+fn forces(rest: &[Vec3], order: &Arc<[u32]>, at: &[Vec3]) -> Vec<Vec3A> {
+    let (bb, bending) = set_up(rest, order);
     let x: Vec<Vec3A> = at.iter().map(|p| Vec3A::from(*p)).collect();
     let v = vec![Vec3A::ZERO; x.len()];
     let ctx = SubstepContext {
@@ -71,8 +77,16 @@ fn forces(rest: &[Vec3], order: &Arc<[u32]>, at: &[Vec3]) -> Vec<Vec3A> {
         closed: &[],
     };
     let mut f = vec![Vec3A::ZERO; x.len()];
-    bending.add_forces(&ctx, &mut (), &rest_lengths, &mut f);
+    bending.add_forces(&ctx, &mut (), bb.rest_lengths(), &mut f);
     f
+}
+
+/// Each particle's row of the stability bound the chain-form bending adds.
+fn stability_rows(rest: &[Vec3], order: &Arc<[u32]>) -> Vec<f32> {
+    let (bb, bending) = set_up(rest, order);
+    let (mut row, mut damping) = (vec![0.0; rest.len()], vec![0.0; rest.len()]);
+    bending.stability(&bb, &mut row, &mut damping);
+    row
 }
 
 /// The straight chain with the particle `k`-th along it lifted by `h` metres.
@@ -151,4 +165,26 @@ fn a_chain_order_naming_a_missing_or_repeated_particle_is_an_error() {
         let err = Backbone::with_options(&x, &held, params(), SimConfig::default(), options);
         assert!(err.is_err());
     }
+}
+
+#[test]
+fn a_chain_collapsed_to_a_point_adds_no_force_and_a_finite_stability_bound() {
+    let (_, order) = straight();
+    let x = vec![Vec3::new(0.1, 0.2, 0.3); N];
+    for f in forces(&x, &order, &x) {
+        assert_eq!(f, Vec3A::ZERO);
+    }
+    let mut y = x.clone();
+    y[3].z += 0.01;
+    for f in forces(&x, &order, &y) {
+        assert!(f.is_finite() && f.length() < 1e-6, "{f}");
+    }
+    assert!(stability_rows(&x, &order).iter().all(|r| *r == 0.0));
+    // A straight chain's rows are positive and finite: the bound sees the curvature term.
+    let (x, order) = straight();
+    assert!(
+        stability_rows(&x, &order)
+            .iter()
+            .all(|r| r.is_finite() && *r > 0.0)
+    );
 }
