@@ -92,8 +92,9 @@ pub struct DiagnoseArgs {
     #[arg(long, value_enum, default_value_t = ProtocolArg::Paper)]
     pub protocol: ProtocolArg,
     /// Comma-separated candidate effects (default: the nine library effects). Names starting
-    /// with `+` are added to the nine instead, e.g. `+gravity-scale` (an extra candidate,
-    /// offered on request only; `docs/gap.md`).
+    /// with `+` are added to the nine instead, e.g. `+gravity-scale` or `+bending-damping`
+    /// (extra candidates, offered on request only; the latter on `chain` datasets;
+    /// `docs/gap.md`).
     #[arg(long)]
     pub candidates: Option<String>,
     /// Effects already in the model, refitted with the backbone in the control and in every
@@ -562,6 +563,15 @@ fn setup(args: &DiagnoseArgs) -> anyhow::Result<Setup> {
     let train = scenes(&data, Split::Train, protocol, setting(substep))?;
     let val = scenes(&data, Split::Val, protocol, setting(substep))?;
     let mut config = config_from(args, &backbone.effects)?;
+    if config.candidates.contains(&Candidate::BendingDamping)
+        && data.meta.structure != dataset::Structure::Chain
+    {
+        anyhow::bail!(
+            "--candidates: bending-damping acts along a cable's order and needs a `chain` \
+             dataset (e.g. `xtask import deform`); {} is not one",
+            args.data.display()
+        );
+    }
     // A refined stiffness field stays at its values in every model; the refits move the
     // global stiffness it multiplies.
     config.field = backbone.refined.as_ref().map(|r| r.log_factor.clone());
@@ -846,6 +856,11 @@ mod tests {
         let added = parse_candidates("+gravity-scale").unwrap();
         assert_eq!(added.len(), Candidate::LIBRARY.len() + 1);
         assert_eq!(added.last(), Some(&Candidate::GravityScale));
+        let both = parse_candidates("+gravity-scale, +bending-damping").unwrap();
+        assert_eq!(
+            both[Candidate::LIBRARY.len()..],
+            [Candidate::GravityScale, Candidate::BendingDamping]
+        );
         // Adding one already there changes nothing.
         assert_eq!(
             parse_candidates("+drag").unwrap(),

@@ -12,8 +12,9 @@ use springs::{BackboneOptions, Effect, SpringParams};
 use crate::GapError;
 use crate::base::{BaseEffect, check_distinct};
 use crate::forces::{
-    ActuationLag, BendingSprings, ExternalField, GravityScale, MassGradient, PlasticCreep,
-    QuadraticDrag, SlippingGrasp, StickSlipFriction, StiffnessGradient, StrainStiffening,
+    ActuationLag, BendingDamping, BendingSprings, ExternalField, GravityScale, MassGradient,
+    PlasticCreep, QuadraticDrag, SlippingGrasp, StickSlipFriction, StiffnessGradient,
+    StrainStiffening,
 };
 
 /// A candidate unmodelled effect (the nine library effects and the extras), or the generic
@@ -42,6 +43,9 @@ pub enum Candidate {
     /// Beyond the library, offered on request ([`Candidate::EXTRA`]): gravity scaled by a
     /// factor, which also stands for a recording clock off its nominal rate.
     GravityScale,
+    /// Beyond the library, offered on request ([`Candidate::EXTRA`]), chains only: internal
+    /// damping of the bending along a cable ([`BendingDamping`]).
+    BendingDamping,
     /// Not in the library: a generic external acceleration field (the `unknown` probe).
     ExternalField,
 }
@@ -74,7 +78,7 @@ impl Candidate {
     /// Candidates beyond the nine, offered on request only (`--candidates`): the reference
     /// world cannot switch them on, so the bench cannot check them, and they stay out of the
     /// default list.
-    pub const EXTRA: [Candidate; 1] = [Candidate::GravityScale];
+    pub const EXTRA: [Candidate; 2] = [Candidate::GravityScale, Candidate::BendingDamping];
 
     /// The effect's name, as used by the reference world and in reports.
     pub fn name(self) -> &'static str {
@@ -89,6 +93,7 @@ impl Candidate {
             Candidate::GraspSlip => "grasp-slip",
             Candidate::MassDistribution => "mass-distribution",
             Candidate::GravityScale => "gravity-scale",
+            Candidate::BendingDamping => "bending-damping",
             Candidate::ExternalField => "external-field",
         }
     }
@@ -132,6 +137,8 @@ impl Candidate {
             ],
             Candidate::MassDistribution => vec![Parameter::linear("log_mass_slope", -2.0, 2.0)],
             Candidate::GravityScale => vec![Parameter::linear("gravity_factor", 0.5, 4.0)],
+            // From a trace to a damping that stops a chain's bending modes within a step.
+            Candidate::BendingDamping => vec![Parameter::log("bending_damping_time_s", 1e-5, 0.3)],
             Candidate::ExternalField => vec![
                 Parameter::linear("field_x_m_per_s2", -5.0, 5.0),
                 Parameter::linear("field_y_m_per_s2", -5.0, 5.0),
@@ -168,6 +175,7 @@ impl Candidate {
             Candidate::GraspSlip => vec![1.0, 1.0],
             Candidate::MassDistribution => vec![0.5],
             Candidate::GravityScale => vec![1.2],
+            Candidate::BendingDamping => vec![1e-3],
             Candidate::ExternalField => {
                 vec![0.5, 0.5, 0.5, -2.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]
             }
@@ -202,6 +210,7 @@ impl Candidate {
             Candidate::NonlinearElasticity => vec![0.0, 1.0],
             Candidate::Friction | Candidate::ActuationDelay => vec![0.0],
             Candidate::GravityScale => vec![1.0],
+            Candidate::BendingDamping => vec![0.0],
             Candidate::Plasticity => vec![0.02, 0.0],
             Candidate::GraspSlip => vec![1e9, 1e12],
             Candidate::ExternalField => {
@@ -235,6 +244,7 @@ impl Candidate {
                 material: frame.coordinate.clone(),
             }),
             Candidate::GravityScale => Box::new(GravityScale { factor: f(0) }),
+            Candidate::BendingDamping => Box::new(BendingDamping::new(f(0))),
             Candidate::ExternalField => {
                 let width = v.get(7).map_or(1.0, |w| *w as f32);
                 Box::new(ExternalField {

@@ -13,6 +13,10 @@ use springs::{
 
 use crate::lanes;
 
+mod chain;
+pub use chain::BendingDamping;
+use chain::ChainStencil;
+
 fn bad(name: &str, message: String) -> SimError {
     SimError::Effect {
         name: name.to_owned(),
@@ -344,29 +348,14 @@ impl BendingSprings {
 
     /// The curvature form along `order` (at least three particles).
     fn set_up_chain(&mut self, model: &ModelSetup<'_>, order: &[u32]) {
-        let x = model.rest_positions;
         let factors = particle_factors(model);
         self.pairs.clear();
         self.rest.clear();
         self.stiffness.clear();
-        self.triplets = order.windows(3).map(|w| [w[0], w[1], w[2]]).collect();
-        let length = |a: u32, b: u32| x[a as usize].distance(x[b as usize]);
-        let total: f32 = order.windows(2).map(|w| length(w[0], w[1])).sum();
-        let mean = total / (order.len() - 1) as f32;
-        if !(mean.is_finite() && mean > 0.0) {
-            // A chain collapsed to a point has no curvature to keep: no triplets.
-            self.triplets.clear();
-            self.inv_lengths.clear();
-            self.curvature_stiffness.clear();
-            return;
-        }
-        // A segment of zero rest length would divide by zero; a tenth of the mean stands in.
-        let inv = |a: u32, b: u32| 1.0 / length(a, b).max(0.1 * mean).max(f32::MIN_POSITIVE);
-        self.inv_lengths = self
-            .triplets
-            .iter()
-            .map(|t| [inv(t[0], t[1]), inv(t[1], t[2])])
-            .collect();
+        let stencil = ChainStencil::new(model.rest_positions, order);
+        let mean = stencil.mean_length;
+        self.triplets = stencil.triplets;
+        self.inv_lengths = stencil.inv_lengths;
         let base = self.relative_stiffness.max(0.0) * model.params.stiffness * mean * mean;
         self.curvature_stiffness = self
             .triplets

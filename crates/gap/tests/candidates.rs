@@ -53,6 +53,11 @@ fn frame(x: &[Vec3]) -> MaterialFrame {
 fn roll(effect: Option<(Candidate, Vec<f64>)>) -> Vec<Vec<Vec3>> {
     let (x, held, actions, state) = scene();
     let f = frame(&x);
+    // `bending-damping` acts along a chain only: the strip's middle row.
+    let chain = effect
+        .as_ref()
+        .filter(|(c, _)| *c == Candidate::BendingDamping)
+        .map(|_| (0..12u32).map(|i| 3 * i + 1).collect::<Arc<[u32]>>());
     let effects = effect
         .map(|(c, v)| vec![c.effect(&v, &f)])
         .unwrap_or_default();
@@ -64,6 +69,7 @@ fn roll(effect: Option<(Candidate, Vec<f64>)>) -> Vec<Vec<Vec3>> {
         BackboneOptions {
             masses: None,
             effects,
+            chain,
             ..Default::default()
         },
     )

@@ -178,6 +178,17 @@ pub trait Effect: Send + Sync + Debug {
         let _ = (ctx, state, rest_lengths, force);
     }
 
+    /// Every substep, after the velocity update (forces, the grasp, the springs' dashpots) and
+    /// before ground friction and the position update: may replace the velocities (m/s) by an
+    /// implicit damping's, `v ← (M + dt C)⁻¹ M v` for a damping matrix `C` (N·s/m), which stays
+    /// stable at any substep where an explicit `−C v` force would need tiny ones. Particles
+    /// with `inv_mass` 0 (held by a closed gripper) must keep their velocities. An effect that
+    /// uses this hook reports [`EffectAdjoint::HeldFixed`]: the adjoint takes it as the
+    /// identity.
+    fn damp_velocities(&self, dt: f32, inv_mass: &[f32], v: &mut [Vec3A]) {
+        let _ = (dt, inv_mass, v);
+    }
+
     /// Every substep, after the position update: may change the rest lengths (m) of this rollout.
     fn end_substep(&self, ctx: &SubstepContext<'_>, state: &mut dyn Any, rest_lengths: &mut [f32]) {
         let _ = (ctx, state, rest_lengths);

@@ -399,6 +399,9 @@ impl Backbone {
                     Some(p) => split::damping(self, p, sc, crew),
                 }
             }
+            for e in &self.effects {
+                e.damp_velocities(dt, &sc.inv_m_eff[..n], &mut sc.v[..n]);
+            }
             if let Some(h) = self.config.ground_z {
                 let len = tape.as_ref().map_or(0, |t| t.tangential.len());
                 let tangential = tape.as_deref_mut().map(|t| &mut t.tangential[len - n..]);
