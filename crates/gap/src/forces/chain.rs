@@ -120,7 +120,8 @@ impl Effect for BendingDamping {
 /// Solves `(M + h Σ_j w_j w_jᵀ) v' = M v` for the particles of `order` (triplet j acts on
 /// positions j, j+1, j+2 of it with weights `weights[j]`, `h = c dt`), each coordinate
 /// separately; particles with `inv_mass` 0 keep their velocities and enter the others' right
-/// side. The matrix is banded (two off-diagonals) and symmetric positive definite: Cholesky.
+/// side. The matrix is banded (two off-diagonals) and symmetric positive definite: Cholesky,
+/// in place, in buffers kept per thread (the hook runs every substep).
 pub(crate) fn implicit_chain_damping(
     order: &[u32],
     weights: &[[f32; 3]],
@@ -128,112 +129,119 @@ pub(crate) fn implicit_chain_damping(
     inv_mass: &[f32],
     v: &mut [Vec3A],
 ) {
+    thread_local! {
+        static BUFFERS: std::cell::RefCell<Buffers> = std::cell::RefCell::default();
+    }
+    BUFFERS.with(|b| solve_banded(order, weights, h, inv_mass, v, &mut b.borrow_mut()));
+}
+
+/// The band (row p: the entries at columns p−2, p−1, p, then its Cholesky factor's), the right
+/// sides (then the solutions) and which particles are held.
+#[derive(Default)]
+struct Buffers {
+    band: Vec<[f64; 3]>,
+    rhs: Vec<[f64; 3]>,
+    fixed: Vec<bool>,
+}
+
+fn solve_banded(
+    order: &[u32],
+    weights: &[[f32; 3]],
+    h: f64,
+    inv_mass: &[f32],
+    v: &mut [Vec3A],
+    buffers: &mut Buffers,
+) {
+    let Buffers { band, rhs, fixed } = buffers;
     let n = order.len();
-    let fixed: Vec<bool> = order.iter().map(|&i| inv_mass[i as usize] <= 0.0).collect();
-    // Row p holds the entries at columns p−2, p−1, p.
-    let mut a = vec![[0.0f64; 3]; n];
+    let vel = |i: u32| {
+        let q = v[i as usize];
+        [f64::from(q.x), f64::from(q.y), f64::from(q.z)]
+    };
+    fixed.clear();
+    fixed.extend(order.iter().map(|&i| inv_mass[i as usize] <= 0.0));
+    band.clear();
+    rhs.clear();
     for (p, &i) in order.iter().enumerate() {
-        if !fixed[p] {
-            a[p][2] = 1.0 / f64::from(inv_mass[i as usize]);
+        if fixed[p] {
+            band.push([0.0, 0.0, 1.0]);
+            rhs.push(vel(i));
+        } else {
+            let m = 1.0 / f64::from(inv_mass[i as usize]);
+            band.push([0.0, 0.0, m]);
+            rhs.push(vel(i).map(|c| c * m));
         }
     }
-    let mut coupling = vec![[0.0f64; 3]; n];
+    // Each triplet's h w wᵀ: into the band between free particles; a held particle's column
+    // moves to the free row's right side; a held row stays the identity.
     for (j, w) in weights.iter().enumerate() {
         for r in 0..3 {
             for c in 0..=r {
+                let (p, q) = (j + r, j + c);
                 let value = h * f64::from(w[r]) * f64::from(w[c]);
-                coupling[j + r][2 - (r - c)] += value;
+                match (fixed[p], fixed[q]) {
+                    (false, false) => band[p][2 - (r - c)] += value,
+                    (false, true) => {
+                        let vq = vel(order[q]);
+                        for (x, s) in rhs[p].iter_mut().zip(vq) {
+                            *x -= value * s;
+                        }
+                    }
+                    (true, false) => {
+                        let vp = vel(order[p]);
+                        for (x, s) in rhs[q].iter_mut().zip(vp) {
+                            *x -= value * s;
+                        }
+                    }
+                    (true, true) => {}
+                }
             }
         }
     }
-    let vel = |p: usize| {
-        let q = v[order[p] as usize];
-        [f64::from(q.x), f64::from(q.y), f64::from(q.z)]
-    };
-    let mut rhs: Vec<[f64; 3]> = (0..n)
-        .map(|p| {
-            if fixed[p] {
-                vel(p)
-            } else {
-                vel(p).map(|c| c * a[p][2])
-            }
-        })
-        .collect();
-    for p in 0..n {
-        for (k, value) in coupling[p].iter().enumerate() {
-            if p + k < 2 {
-                continue;
-            }
-            let q = p + k - 2;
-            match (fixed[p], fixed[q]) {
-                (false, false) => a[p][k] += value,
-                (false, true) if k < 2 => {
-                    let vq = vel(q);
-                    for (r, s) in rhs[p].iter_mut().zip(vq) {
-                        *r -= value * s;
-                    }
-                }
-                (true, false) => {
-                    let vp = vel(p);
-                    for (r, s) in rhs[q].iter_mut().zip(vp) {
-                        *r -= value * s;
-                    }
-                }
-                _ => {}
-            }
-        }
-        if fixed[p] {
-            a[p] = [0.0, 0.0, 1.0];
-        }
-    }
-    // Cholesky of the band: l[p] holds L's entries at columns p−2, p−1, p.
-    let mut l = vec![[0.0f64; 3]; n];
+    // Cholesky of the band in place: row p's entries become L's at columns p−2, p−1, p.
     for p in 0..n {
         for k in 0..3 {
             if p + k < 2 {
                 continue;
             }
             let q = p + k - 2;
-            // Σ over columns m < q shared by rows p and q of L.
-            let mut sum = a[p][k];
-            for m in q.saturating_sub(2)..q {
-                if m + 2 >= p {
-                    sum -= l[p][m + 2 - p] * l[q][m + 2 - q];
-                }
+            // Σ over the columns m < q that rows p and q of L share (m ≥ p − 2).
+            let mut sum = band[p][k];
+            for m in p.saturating_sub(2)..q {
+                sum -= band[p][m + 2 - p] * band[q][m + 2 - q];
             }
-            if k == 2 {
-                l[p][2] = sum.max(f64::MIN_POSITIVE).sqrt();
+            band[p][k] = if k == 2 {
+                sum.max(f64::MIN_POSITIVE).sqrt()
             } else {
-                l[p][k] = sum / l[q][2];
-            }
+                sum / band[q][2]
+            };
         }
     }
     // L y = b, then Lᵀ x = y.
     for p in 0..n {
-        let row = l[p];
+        let row = band[p];
         for (k, lk) in row[..2].iter().enumerate() {
             if p + k >= 2 {
                 let yq = rhs[p + k - 2];
-                for (r, s) in rhs[p].iter_mut().zip(yq) {
-                    *r -= lk * s;
+                for (x, s) in rhs[p].iter_mut().zip(yq) {
+                    *x -= lk * s;
                 }
             }
         }
-        let d = row[2];
-        for r in &mut rhs[p] {
-            *r /= d;
+        for x in &mut rhs[p] {
+            *x /= row[2];
         }
     }
     for p in (0..n).rev() {
-        let d = l[p][2];
-        for r in &mut rhs[p] {
-            *r /= d;
+        let row = band[p];
+        for x in &mut rhs[p] {
+            *x /= row[2];
         }
         let xp = rhs[p];
-        for (k, lk) in l[p][..2].iter().enumerate() {
+        for (k, lk) in row[..2].iter().enumerate() {
             if p + k >= 2 {
-                for (r, s) in rhs[p + k - 2].iter_mut().zip(xp) {
-                    *r -= lk * s;
+                for (x, s) in rhs[p + k - 2].iter_mut().zip(xp) {
+                    *x -= lk * s;
                 }
             }
         }
