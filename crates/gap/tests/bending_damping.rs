@@ -160,6 +160,50 @@ fn held_particles_keep_their_velocities_and_bound_the_rest() {
     }
 }
 
+/// The factored system is kept between calls: every call must still solve its own system,
+/// whether the held particles, the substep or the chain change between calls.
+#[test]
+fn repeated_calls_solve_their_own_systems() {
+    let (rest_a, order_a) = chain(12, &[0.3; 12]);
+    let (rest_b, order_b) = chain(9, &[-0.5; 9]);
+    let mut masses_a: Vec<f32> = (0..12).map(|i| 1.0 + 0.05 * i as f32).collect();
+    let mut masses_b = vec![2.0; 9];
+    let (tau_a, tau_b) = (0.03, 0.01);
+    let a = set_up(&rest_a, &order_a, &mut masses_a, tau_a);
+    let b = set_up(&rest_b, &order_b, &mut masses_b, tau_b);
+    for round in 0..6 {
+        let (effect, rest, order, masses, tau) = if round % 3 == 2 {
+            (&b, &rest_b, &order_b, &masses_b, tau_b)
+        } else {
+            (&a, &rest_a, &order_a, &masses_a, tau_a)
+        };
+        let n = masses.len();
+        // Rounds 0 and 1 differ only in the held particle, 3 and 4 only in the substep.
+        let held = order[if round == 1 { 2 } else { 0 }] as usize;
+        let dt = if round == 4 { 2e-3 } else { 1e-3 };
+        let inv: Vec<f32> = (0..n)
+            .map(|i| if i == held { 0.0 } else { 1.0 / masses[i] })
+            .collect();
+        let v0: Vec<Vec3A> = (0..n)
+            .map(|i| Vec3A::new((i + round) as f32 * 0.1, -0.2, (i as f32).sin()))
+            .collect();
+        let mut v = v0.clone();
+        effect.damp_velocities(dt, &inv, &mut v);
+        let cv = damping_times(rest, order, tau, &v);
+        for i in 0..n {
+            if i == held {
+                assert_eq!(v[i], v0[i], "round {round}");
+            } else {
+                let residual = (v[i] - v0[i]) * masses[i] + cv[i] * dt;
+                assert!(
+                    residual.length() < 1e-4,
+                    "round {round}, particle {i}: {residual}"
+                );
+            }
+        }
+    }
+}
+
 #[test]
 fn a_model_without_a_chain_is_an_error() {
     let rest = vec![Vec3::ZERO, Vec3::X * 0.02, Vec3::X * 0.04];

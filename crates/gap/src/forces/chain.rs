@@ -66,7 +66,13 @@ pub struct BendingDamping {
     weights: Vec<[f32; 3]>,
     /// c, N·m·s.
     coefficient: f32,
+    /// Names this set-up (its order, weights and coefficient) in the per-thread cache of the
+    /// factored system ([`implicit_chain_damping`]); 0 before setup.
+    id: u64,
 }
+
+/// The next [`BendingDamping::id`].
+static NEXT_ID: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(1);
 
 impl BendingDamping {
     /// Damping of time `damping_time_s` (s).
@@ -100,6 +106,7 @@ impl Effect for BendingDamping {
             .collect();
         let l = stencil.mean_length;
         self.coefficient = self.damping_time_s.max(0.0) * model.params.stiffness * l * l;
+        self.id = NEXT_ID.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         Ok(())
     }
 
@@ -108,6 +115,7 @@ impl Effect for BendingDamping {
             return;
         }
         implicit_chain_damping(
+            self.id,
             &self.order,
             &self.weights,
             f64::from(self.coefficient) * f64::from(dt),
@@ -121,8 +129,11 @@ impl Effect for BendingDamping {
 /// positions j, j+1, j+2 of it with weights `weights[j]`, `h = c dt`), each coordinate
 /// separately; particles with `inv_mass` 0 keep their velocities and enter the others' right
 /// side. The matrix is banded (two off-diagonals) and symmetric positive definite: Cholesky,
-/// in place, in buffers kept per thread (the hook runs every substep).
+/// in place. The factor depends only on the set-up `id` names, `h` and the masses (held
+/// particles included), which change only when a grasp opens or closes, so each thread keeps
+/// its last one and reuses it while those are the same; the right side is built every call.
 pub(crate) fn implicit_chain_damping(
+    id: u64,
     order: &[u32],
     weights: &[[f32; 3]],
     h: f64,
@@ -130,126 +141,154 @@ pub(crate) fn implicit_chain_damping(
     v: &mut [Vec3A],
 ) {
     thread_local! {
-        static BUFFERS: std::cell::RefCell<Buffers> = std::cell::RefCell::default();
+        static CACHE: std::cell::RefCell<Factored> = std::cell::RefCell::default();
     }
-    BUFFERS.with(|b| solve_banded(order, weights, h, inv_mass, v, &mut b.borrow_mut()));
+    CACHE.with(|c| {
+        let mut c = c.borrow_mut();
+        let same = c.id == id
+            && c.h == h
+            && c.inv_mass.len() == order.len()
+            && order
+                .iter()
+                .zip(&c.inv_mass)
+                .all(|(&i, m)| inv_mass[i as usize] == *m);
+        if !same {
+            c.factor(id, order, weights, h, inv_mass);
+        }
+        c.solve(order, v);
+    });
 }
 
-/// The band (row p: the entries at columns p−2, p−1, p, then its Cholesky factor's), the right
-/// sides (then the solutions) and which particles are held.
+/// One thread's factored system and what it was factored for.
 #[derive(Default)]
-struct Buffers {
+struct Factored {
+    /// The set-up, `h` and inverse masses (in chain order) of the factor; id 0: none yet.
+    id: u64,
+    h: f64,
+    inv_mass: Vec<f32>,
+    /// Row p: the Cholesky factor's entries at columns p−2, p−1, p (a held row: the identity).
     band: Vec<[f64; 3]>,
+    /// (free row, held column, h w_r w_c): a held particle's velocity on a free row's right
+    /// side.
+    held_terms: Vec<(usize, usize, f64)>,
+    /// Right sides, then solutions.
     rhs: Vec<[f64; 3]>,
-    fixed: Vec<bool>,
 }
 
-fn solve_banded(
-    order: &[u32],
-    weights: &[[f32; 3]],
-    h: f64,
-    inv_mass: &[f32],
-    v: &mut [Vec3A],
-    buffers: &mut Buffers,
-) {
-    let Buffers { band, rhs, fixed } = buffers;
-    let n = order.len();
-    let vel = |i: u32| {
-        let q = v[i as usize];
-        [f64::from(q.x), f64::from(q.y), f64::from(q.z)]
-    };
-    fixed.clear();
-    fixed.extend(order.iter().map(|&i| inv_mass[i as usize] <= 0.0));
-    band.clear();
-    rhs.clear();
-    for (p, &i) in order.iter().enumerate() {
-        if fixed[p] {
-            band.push([0.0, 0.0, 1.0]);
-            rhs.push(vel(i));
-        } else {
-            let m = 1.0 / f64::from(inv_mass[i as usize]);
-            band.push([0.0, 0.0, m]);
-            rhs.push(vel(i).map(|c| c * m));
-        }
-    }
-    // Each triplet's h w wᵀ: into the band between free particles; a held particle's column
-    // moves to the free row's right side; a held row stays the identity.
-    for (j, w) in weights.iter().enumerate() {
-        for r in 0..3 {
-            for c in 0..=r {
-                let (p, q) = (j + r, j + c);
-                let value = h * f64::from(w[r]) * f64::from(w[c]);
-                match (fixed[p], fixed[q]) {
-                    (false, false) => band[p][2 - (r - c)] += value,
-                    (false, true) => {
-                        let vq = vel(order[q]);
-                        for (x, s) in rhs[p].iter_mut().zip(vq) {
-                            *x -= value * s;
-                        }
-                    }
-                    (true, false) => {
-                        let vp = vel(order[p]);
-                        for (x, s) in rhs[q].iter_mut().zip(vp) {
-                            *x -= value * s;
-                        }
-                    }
-                    (true, true) => {}
-                }
-            }
-        }
-    }
-    // Cholesky of the band in place: row p's entries become L's at columns p−2, p−1, p.
-    for p in 0..n {
-        for k in 0..3 {
-            if p + k < 2 {
-                continue;
-            }
-            let q = p + k - 2;
-            // Σ over the columns m < q that rows p and q of L share (m ≥ p − 2).
-            let mut sum = band[p][k];
-            for m in p.saturating_sub(2)..q {
-                sum -= band[p][m + 2 - p] * band[q][m + 2 - q];
-            }
-            band[p][k] = if k == 2 {
-                sum.max(f64::MIN_POSITIVE).sqrt()
+impl Factored {
+    fn factor(&mut self, id: u64, order: &[u32], weights: &[[f32; 3]], h: f64, inv_mass: &[f32]) {
+        let n = order.len();
+        self.id = id;
+        self.h = h;
+        self.inv_mass.clear();
+        self.inv_mass
+            .extend(order.iter().map(|&i| inv_mass[i as usize]));
+        let fixed = |p: usize| self.inv_mass[p] <= 0.0;
+        self.band.clear();
+        self.band.extend((0..n).map(|p| {
+            if fixed(p) {
+                [0.0, 0.0, 1.0]
             } else {
-                sum / band[q][2]
-            };
-        }
-    }
-    // L y = b, then Lᵀ x = y.
-    for p in 0..n {
-        let row = band[p];
-        for (k, lk) in row[..2].iter().enumerate() {
-            if p + k >= 2 {
-                let yq = rhs[p + k - 2];
-                for (x, s) in rhs[p].iter_mut().zip(yq) {
-                    *x -= lk * s;
+                [0.0, 0.0, 1.0 / f64::from(self.inv_mass[p])]
+            }
+        }));
+        self.held_terms.clear();
+        // Each triplet's h w wᵀ: into the band between free particles; a held particle's column
+        // moves to the free row's right side; a held row stays the identity.
+        for (j, w) in weights.iter().enumerate() {
+            for r in 0..3 {
+                for c in 0..=r {
+                    let (p, q) = (j + r, j + c);
+                    let value = h * f64::from(w[r]) * f64::from(w[c]);
+                    match (fixed(p), fixed(q)) {
+                        (false, false) => self.band[p][2 - (r - c)] += value,
+                        (false, true) => self.held_terms.push((p, q, value)),
+                        (true, false) => self.held_terms.push((q, p, value)),
+                        (true, true) => {}
+                    }
                 }
             }
         }
-        for x in &mut rhs[p] {
-            *x /= row[2];
-        }
-    }
-    for p in (0..n).rev() {
-        let row = band[p];
-        for x in &mut rhs[p] {
-            *x /= row[2];
-        }
-        let xp = rhs[p];
-        for (k, lk) in row[..2].iter().enumerate() {
-            if p + k >= 2 {
-                for (x, s) in rhs[p + k - 2].iter_mut().zip(xp) {
-                    *x -= lk * s;
+        // Cholesky in place: row p's entries become L's at columns p−2, p−1, p.
+        let band = &mut self.band;
+        for p in 0..n {
+            for k in 0..3 {
+                if p + k < 2 {
+                    continue;
                 }
+                let q = p + k - 2;
+                // Σ over the columns m < q that rows p and q of L share (m ≥ p − 2).
+                let mut sum = band[p][k];
+                for m in p.saturating_sub(2)..q {
+                    sum -= band[p][m + 2 - p] * band[q][m + 2 - q];
+                }
+                band[p][k] = if k == 2 {
+                    sum.max(f64::MIN_POSITIVE).sqrt()
+                } else {
+                    sum / band[q][2]
+                };
             }
         }
     }
-    for (p, &i) in order.iter().enumerate() {
-        if !fixed[p] {
-            let [x, y, z] = rhs[p];
-            v[i as usize] = Vec3A::new(x as f32, y as f32, z as f32);
+
+    /// `v` ← the solution for the right side `M v` (held: `v`), with the factor of [`Self::factor`].
+    fn solve(&mut self, order: &[u32], v: &mut [Vec3A]) {
+        let n = order.len();
+        let vel = |i: u32| {
+            let q = v[i as usize];
+            [f64::from(q.x), f64::from(q.y), f64::from(q.z)]
+        };
+        self.rhs.clear();
+        self.rhs
+            .extend(order.iter().zip(&self.inv_mass).map(|(&i, &im)| {
+                if im <= 0.0 {
+                    vel(i)
+                } else {
+                    let m = 1.0 / f64::from(im);
+                    vel(i).map(|c| c * m)
+                }
+            }));
+        let (band, rhs) = (&self.band, &mut self.rhs);
+        for &(p, q, value) in &self.held_terms {
+            let vq = vel(order[q]);
+            for (x, s) in rhs[p].iter_mut().zip(vq) {
+                *x -= value * s;
+            }
+        }
+        // L y = b, then Lᵀ x = y.
+        for p in 0..n {
+            let row = band[p];
+            for (k, lk) in row[..2].iter().enumerate() {
+                if p + k >= 2 {
+                    let yq = rhs[p + k - 2];
+                    for (x, s) in rhs[p].iter_mut().zip(yq) {
+                        *x -= lk * s;
+                    }
+                }
+            }
+            for x in &mut rhs[p] {
+                *x /= row[2];
+            }
+        }
+        for p in (0..n).rev() {
+            let row = band[p];
+            for x in &mut rhs[p] {
+                *x /= row[2];
+            }
+            let xp = rhs[p];
+            for (k, lk) in row[..2].iter().enumerate() {
+                if p + k >= 2 {
+                    for (x, s) in rhs[p + k - 2].iter_mut().zip(xp) {
+                        *x -= lk * s;
+                    }
+                }
+            }
+        }
+        for (p, &i) in order.iter().enumerate() {
+            if self.inv_mass[p] > 0.0 {
+                let [x, y, z] = rhs[p];
+                v[i as usize] = Vec3A::new(x as f32, y as f32, z as f32);
+            }
         }
     }
 }
