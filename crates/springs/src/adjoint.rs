@@ -9,7 +9,7 @@
 //! explicit) dashpots (directions included), gravity, the ground's penalty force, normal
 //! damping and friction, the kinematic grasp and the final clamp, and the forces of every
 //! effect that gives its own transpose ([`crate::EffectAdjoint::Transposed`]: drag, bending
-//! springs, fields), besides every effect that acts only at construction. Held fixed (their derivatives
+//! springs, fields, the implicit bending damping), besides every effect that acts only at construction. Held fixed (their derivatives
 //! are left out): the other effects' forces ([`Backbone::held_fixed_effects`]; a friction
 //! effect's law is taken as its recorded speed ratio), pushing, obstacles and a compliant grasp;
 //! with `SimConfig::partitions > 1` the sweeps are transposed in the unsplit order. A contact
@@ -271,9 +271,15 @@ impl StepAdjoint {
             if bb.has_damping {
                 replay_sweeps(bb, &geom, &inv_m, &mut v2, &mut pre);
             }
+            for e in &bb.effects {
+                e.damp_velocities(dt, &inv_m, &mut v2);
+            }
             if let Some(h) = ground {
                 let tang = &tape.tangential[s * n..(s + 1) * n];
                 ground_transpose(bb, h, x0, &v2, tang, &inv_m, &mut ax, &mut av);
+            }
+            for e in bb.effects.iter().rev() {
+                e.damp_velocities_vjp(dt, &inv_m, &mut av);
             }
             if bb.has_damping {
                 sweeps_transpose(bb, &geom, &inv_m, &pre, &mut ax, &mut av);

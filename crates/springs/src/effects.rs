@@ -93,9 +93,11 @@ pub enum EffectAdjoint {
     /// It acts only in [`Effect::setup`]; its changes are in the backbone's arrays, which the
     /// adjoint reads: exact, nothing to carry.
     SetupOnly,
-    /// Its only other hook is [`Effect::add_forces`], whose forces depend on nothing but the
+    /// Its only other hooks are [`Effect::add_forces`], whose forces depend on nothing but the
     /// substep's positions and velocities (not on the per-spring stiffness, the grippers or
-    /// per-rollout state), and [`Effect::force_vjp`] applies the transpose of their Jacobian.
+    /// per-rollout state), with [`Effect::force_vjp`] applying the transpose of their Jacobian,
+    /// and [`Effect::damp_velocities`], linear in the velocities and independent of the
+    /// positions, with [`Effect::damp_velocities_vjp`] applying its transpose.
     Transposed,
 }
 
@@ -183,10 +185,19 @@ pub trait Effect: Send + Sync + Debug {
     /// implicit damping's, `v ← (M + dt C)⁻¹ M v` for a damping matrix `C` (N·s/m), which stays
     /// stable at any substep where an explicit `−C v` force would need tiny ones. Particles
     /// with `inv_mass` 0 (held by a closed gripper) must keep their velocities. An effect that
-    /// uses this hook reports [`EffectAdjoint::HeldFixed`]: the adjoint takes it as the
-    /// identity.
+    /// uses this hook reports [`EffectAdjoint::HeldFixed`] (the adjoint takes it as the
+    /// identity) unless the map is linear in the velocities and does not depend on the
+    /// positions, and [`Effect::damp_velocities_vjp`] gives its transpose
+    /// ([`EffectAdjoint::Transposed`]).
     fn damp_velocities(&self, dt: f32, inv_mass: &[f32], v: &mut [Vec3A]) {
         let _ = (dt, inv_mass, v);
+    }
+
+    /// The transpose of [`Effect::damp_velocities`] (a linear map of the velocities): on entry
+    /// `grad` holds `∂L/∂v'` of the velocities it produced, on return `∂L/∂v` of those it was
+    /// given, with the same `dt` and `inv_mass`. Called only for [`EffectAdjoint::Transposed`].
+    fn damp_velocities_vjp(&self, dt: f32, inv_mass: &[f32], grad: &mut [Vec3A]) {
+        let _ = (dt, inv_mass, grad);
     }
 
     /// Every substep, after the position update: may change the rest lengths (m) of this rollout.

@@ -2,7 +2,7 @@
 //! the bending's internal damping, applied implicitly.
 
 use glam::{Vec3, Vec3A};
-use springs::{Effect, ModelSetup, SimError};
+use springs::{Effect, EffectAdjoint, ModelSetup, SimError};
 
 use super::{bad, check_finite};
 
@@ -56,7 +56,9 @@ impl ChainStencil {
 /// velocities, it conserves momentum and never adds kinetic energy; it also damps a bent
 /// chain's rigid rotation a little (the curvature stencil turns with it). Held particles keep
 /// their velocities. Chains only: its setup is an error on a model without one
-/// ([`springs::ModelSetup::chain`]). The adjoint takes it as the identity (`HeldFixed`).
+/// ([`springs::ModelSetup::chain`]). The map depends on neither positions nor the per-spring
+/// stiffness, so the step's adjoint carries its exact transpose, `M (M + dt C)⁻¹` on the free
+/// particles ([`EffectAdjoint::Transposed`]; `cargo xtask refine` takes models with it).
 #[derive(Debug, Clone, Default)]
 pub struct BendingDamping {
     /// Damping time τ, s (0: none).
@@ -121,8 +123,38 @@ impl Effect for BendingDamping {
             f64::from(self.coefficient) * f64::from(dt),
             inv_mass,
             v,
+            Direction::Forward,
         );
     }
+
+    fn damp_velocities_vjp(&self, dt: f32, inv_mass: &[f32], grad: &mut [Vec3A]) {
+        if self.coefficient <= 0.0 || self.weights.is_empty() {
+            return;
+        }
+        implicit_chain_damping(
+            self.id,
+            &self.order,
+            &self.weights,
+            f64::from(self.coefficient) * f64::from(dt),
+            inv_mass,
+            grad,
+            Direction::Transpose,
+        );
+    }
+
+    fn adjoint(&self) -> EffectAdjoint {
+        EffectAdjoint::Transposed
+    }
+}
+
+/// Which map [`implicit_chain_damping`] applies.
+#[derive(Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Direction {
+    /// The damping itself: free particles `v' = A⁻¹ (M v_F − h C_FH v_H)`, held ones `v' = v`,
+    /// with `A = M + h C` on the free particles.
+    Forward,
+    /// Its transpose, for the adjoint: free `g = M A⁻¹ g'_F`, held `g = g'_H − h C_HF A⁻¹ g'_F`.
+    Transpose,
 }
 
 /// Solves `(M + h Σ_j w_j w_jᵀ) v' = M v` for the particles of `order` (triplet j acts on
@@ -139,6 +171,7 @@ pub(crate) fn implicit_chain_damping(
     h: f64,
     inv_mass: &[f32],
     v: &mut [Vec3A],
+    direction: Direction,
 ) {
     thread_local! {
         static CACHE: std::cell::RefCell<Factored> = std::cell::RefCell::default();
@@ -155,7 +188,10 @@ pub(crate) fn implicit_chain_damping(
         if !same {
             c.factor(id, order, weights, h, inv_mass);
         }
-        c.solve(order, v);
+        match direction {
+            Direction::Forward => c.solve(order, v),
+            Direction::Transpose => c.solve_transpose(order, v),
+        }
     });
 }
 
@@ -233,7 +269,6 @@ impl Factored {
 
     /// `v` ← the solution for the right side `M v` (held: `v`), with the factor of [`Self::factor`].
     fn solve(&mut self, order: &[u32], v: &mut [Vec3A]) {
-        let n = order.len();
         let vel = |i: u32| {
             let q = v[i as usize];
             [f64::from(q.x), f64::from(q.y), f64::from(q.z)]
@@ -248,13 +283,55 @@ impl Factored {
                     vel(i).map(|c| c * m)
                 }
             }));
-        let (band, rhs) = (&self.band, &mut self.rhs);
         for &(p, q, value) in &self.held_terms {
             let vq = vel(order[q]);
-            for (x, s) in rhs[p].iter_mut().zip(vq) {
+            for (x, s) in self.rhs[p].iter_mut().zip(vq) {
                 *x -= value * s;
             }
         }
+        self.substitute();
+        for (p, &i) in order.iter().enumerate() {
+            if self.inv_mass[p] > 0.0 {
+                let [x, y, z] = self.rhs[p];
+                v[i as usize] = Vec3A::new(x as f32, y as f32, z as f32);
+            }
+        }
+    }
+
+    /// `grad` ← the transpose of [`Self::solve`]'s map applied to it ([`Direction::Transpose`]).
+    fn solve_transpose(&mut self, order: &[u32], grad: &mut [Vec3A]) {
+        let g = |i: u32| {
+            let q = grad[i as usize];
+            [f64::from(q.x), f64::from(q.y), f64::from(q.z)]
+        };
+        // Held rows are the identity and uncoupled in the factor: they carry g'_H through.
+        self.rhs.clear();
+        self.rhs.extend(order.iter().map(|&i| g(i)));
+        self.substitute();
+        let rhs = &self.rhs;
+        for &(p, q, value) in &self.held_terms {
+            let i = order[q] as usize;
+            let y = rhs[p];
+            grad[i] -= Vec3A::new(
+                (value * y[0]) as f32,
+                (value * y[1]) as f32,
+                (value * y[2]) as f32,
+            );
+        }
+        for (p, &i) in order.iter().enumerate() {
+            let im = self.inv_mass[p];
+            if im > 0.0 {
+                let m = 1.0 / f64::from(im);
+                let [x, y, z] = rhs[p].map(|c| c * m);
+                grad[i as usize] = Vec3A::new(x as f32, y as f32, z as f32);
+            }
+        }
+    }
+
+    /// `rhs` ← `(L Lᵀ)⁻¹ rhs` with the factor of [`Self::factor`].
+    fn substitute(&mut self) {
+        let n = self.band.len();
+        let (band, rhs) = (&self.band, &mut self.rhs);
         // L y = b, then Lᵀ x = y.
         for p in 0..n {
             let row = band[p];
@@ -282,12 +359,6 @@ impl Factored {
                         *x -= lk * s;
                     }
                 }
-            }
-        }
-        for (p, &i) in order.iter().enumerate() {
-            if self.inv_mass[p] > 0.0 {
-                let [x, y, z] = rhs[p];
-                v[i as usize] = Vec3A::new(x as f32, y as f32, z as f32);
             }
         }
     }
