@@ -54,7 +54,9 @@ impl ChainStencil {
 /// banded solve along the chain, stable at any τ (an explicit force needed substeps up to 30
 /// times shorter on the DEFORM cables, session 93, `docs/gap-log.md`). Being linear in the
 /// velocities, it conserves momentum and never adds kinetic energy; it also damps a bent
-/// chain's rigid rotation a little (the curvature stencil turns with it). Held particles keep
+/// chain's rigid rotation, since the curvature stencil turns with it (on DLO1's fitted model
+/// the sagging cable's swing about its held ends loses its energy at 190–360 s⁻¹; exempting
+/// the chain's rigid motion made DLO1 worse, session 94, `docs/gap-log.md`). Held particles keep
 /// their velocities. Chains only: its setup is an error on a model without one
 /// ([`springs::ModelSetup::chain`]). The map depends on neither positions nor the per-spring
 /// stiffness, so the step's adjoint carries its exact transpose, `M (M + dt C)⁻¹` on the free
