@@ -9,9 +9,10 @@
 //! explicit) dashpots (directions included), gravity, the ground's penalty force, normal
 //! damping and friction, the kinematic grasp and the final clamp, and the forces of every
 //! effect that gives its own transpose ([`crate::EffectAdjoint::Transposed`]: drag, bending
-//! springs, fields, the implicit bending damping), besides every effect that acts only at construction. Held fixed (their derivatives
-//! are left out): the other effects' forces ([`Backbone::held_fixed_effects`]; a friction
-//! effect's law is taken as its recorded speed ratio), pushing, obstacles and a compliant grasp;
+//! springs, fields, the implicit bending damping), besides every effect that acts only at
+//! construction. Held fixed (their derivatives are left out): the other effects' forces
+//! ([`Backbone::held_fixed_effects`]; a friction effect's law is taken as its recorded speed
+//! ratio), pushing, obstacles and a compliant grasp;
 //! with `SimConfig::partitions > 1` the sweeps are transposed in the unsplit order. A contact
 //! that switches within the step is not differentiable: this is the gradient of the smooth
 //! piece the step is on. `docs/physics.md`, "The step's adjoint".
