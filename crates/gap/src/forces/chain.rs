@@ -86,6 +86,22 @@ impl BendingDamping {
             ..Default::default()
         }
     }
+
+    /// The damping's map over a substep of `dt` (s), or its transpose, applied to `v` in place.
+    fn apply(&self, dt: f32, inv_mass: &[f32], v: &mut [Vec3A], direction: Direction) {
+        if self.coefficient <= 0.0 || self.weights.is_empty() {
+            return;
+        }
+        implicit_chain_damping(
+            self.id,
+            &self.order,
+            &self.weights,
+            f64::from(self.coefficient) * f64::from(dt),
+            inv_mass,
+            v,
+            direction,
+        );
+    }
 }
 
 impl Effect for BendingDamping {
@@ -115,33 +131,11 @@ impl Effect for BendingDamping {
     }
 
     fn damp_velocities(&self, dt: f32, inv_mass: &[f32], v: &mut [Vec3A]) {
-        if self.coefficient <= 0.0 || self.weights.is_empty() {
-            return;
-        }
-        implicit_chain_damping(
-            self.id,
-            &self.order,
-            &self.weights,
-            f64::from(self.coefficient) * f64::from(dt),
-            inv_mass,
-            v,
-            Direction::Forward,
-        );
+        self.apply(dt, inv_mass, v, Direction::Forward);
     }
 
     fn damp_velocities_vjp(&self, dt: f32, inv_mass: &[f32], grad: &mut [Vec3A]) {
-        if self.coefficient <= 0.0 || self.weights.is_empty() {
-            return;
-        }
-        implicit_chain_damping(
-            self.id,
-            &self.order,
-            &self.weights,
-            f64::from(self.coefficient) * f64::from(dt),
-            inv_mass,
-            grad,
-            Direction::Transpose,
-        );
+        self.apply(dt, inv_mass, grad, Direction::Transpose);
     }
 
     fn adjoint(&self) -> EffectAdjoint {
