@@ -92,8 +92,8 @@ pub struct DiagnoseArgs {
     #[arg(long, value_enum, default_value_t = ProtocolArg::Paper)]
     pub protocol: ProtocolArg,
     /// Comma-separated candidate effects (default: the nine library effects). Names starting
-    /// with `+` are added to the nine instead, e.g. `+gravity-scale` or `+bending-damping`
-    /// (extra candidates, offered on request only; the latter on `chain` datasets;
+    /// with `+` are added to the nine instead, e.g. `+gravity-scale`, `+bending-damping` or
+    /// `+twist` (extra candidates, offered on request only; the last two on `chain` datasets;
     /// `docs/gap.md`).
     #[arg(long)]
     pub candidates: Option<String>,
@@ -563,12 +563,14 @@ fn setup(args: &DiagnoseArgs) -> anyhow::Result<Setup> {
     let train = scenes(&data, Split::Train, protocol, setting(substep))?;
     let val = scenes(&data, Split::Val, protocol, setting(substep))?;
     let mut config = config_from(args, &backbone.effects)?;
-    if config.candidates.contains(&Candidate::BendingDamping)
+    let along_chain = [Candidate::BendingDamping, Candidate::Twist];
+    if let Some(c) = along_chain.iter().find(|c| config.candidates.contains(c))
         && data.meta.structure != dataset::Structure::Chain
     {
         anyhow::bail!(
-            "--candidates: bending-damping acts along a cable's order and needs a `chain` \
-             dataset (e.g. `xtask import deform`); {} is not one",
+            "--candidates: {} acts along a cable's order and needs a `chain` dataset (e.g. \
+             `xtask import deform`); {} is not one",
+            c.name(),
             args.data.display()
         );
     }

@@ -14,7 +14,7 @@ use crate::base::{BaseEffect, check_distinct};
 use crate::forces::{
     ActuationLag, BendingDamping, BendingSprings, ExternalField, GravityScale, MassGradient,
     PlasticCreep, QuadraticDrag, SlippingGrasp, StickSlipFriction, StiffnessGradient,
-    StrainStiffening,
+    StrainStiffening, Twist,
 };
 
 /// A candidate unmodelled effect (the nine library effects and the extras), or the generic
@@ -46,6 +46,9 @@ pub enum Candidate {
     /// Beyond the library, offered on request ([`Candidate::EXTRA`]), chains only: internal
     /// damping of the bending along a cable ([`BendingDamping`]).
     BendingDamping,
+    /// Beyond the library, offered on request ([`Candidate::EXTRA`]), chains only: a cable's
+    /// torsion between its clamped ends ([`Twist`]).
+    Twist,
     /// Not in the library: a generic external acceleration field (the `unknown` probe).
     ExternalField,
 }
@@ -78,7 +81,11 @@ impl Candidate {
     /// Candidates beyond the nine, offered on request only (`--candidates`): the reference
     /// world cannot switch them on, so the bench cannot check them, and they stay out of the
     /// default list.
-    pub const EXTRA: [Candidate; 2] = [Candidate::GravityScale, Candidate::BendingDamping];
+    pub const EXTRA: [Candidate; 3] = [
+        Candidate::GravityScale,
+        Candidate::BendingDamping,
+        Candidate::Twist,
+    ];
 
     /// The effect's name, as used by the reference world and in reports.
     pub fn name(self) -> &'static str {
@@ -94,6 +101,7 @@ impl Candidate {
             Candidate::MassDistribution => "mass-distribution",
             Candidate::GravityScale => "gravity-scale",
             Candidate::BendingDamping => "bending-damping",
+            Candidate::Twist => "twist",
             Candidate::ExternalField => "external-field",
         }
     }
@@ -139,6 +147,9 @@ impl Candidate {
             Candidate::GravityScale => vec![Parameter::linear("gravity_factor", 0.5, 4.0)],
             // From a trace to a damping that stops a chain's bending modes within a step.
             Candidate::BendingDamping => vec![Parameter::log("bending_damping_time_s", 1e-5, 0.3)],
+            // GJ/EI of a solid isotropic rod is about 0.77 and the chain bending's κ is searched
+            // over [1e-3, 1]: the same range. Its stability bound grows as 16 κ_t k per particle.
+            Candidate::Twist => vec![Parameter::log("twist_relative_stiffness", 1e-3, 1.0)],
             Candidate::ExternalField => vec![
                 Parameter::linear("field_x_m_per_s2", -5.0, 5.0),
                 Parameter::linear("field_y_m_per_s2", -5.0, 5.0),
@@ -176,6 +187,7 @@ impl Candidate {
             Candidate::MassDistribution => vec![0.5],
             Candidate::GravityScale => vec![1.2],
             Candidate::BendingDamping => vec![1e-3],
+            Candidate::Twist => vec![0.05],
             Candidate::ExternalField => {
                 vec![0.5, 0.5, 0.5, -2.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]
             }
@@ -210,7 +222,7 @@ impl Candidate {
             Candidate::NonlinearElasticity => vec![0.0, 1.0],
             Candidate::Friction | Candidate::ActuationDelay => vec![0.0],
             Candidate::GravityScale => vec![1.0],
-            Candidate::BendingDamping => vec![0.0],
+            Candidate::BendingDamping | Candidate::Twist => vec![0.0],
             Candidate::Plasticity => vec![0.02, 0.0],
             Candidate::GraspSlip => vec![1e9, 1e12],
             Candidate::ExternalField => {
@@ -245,6 +257,7 @@ impl Candidate {
             }),
             Candidate::GravityScale => Box::new(GravityScale { factor: f(0) }),
             Candidate::BendingDamping => Box::new(BendingDamping::new(f(0))),
+            Candidate::Twist => Box::new(Twist::new(f(0))),
             Candidate::ExternalField => {
                 let width = v.get(7).map_or(1.0, |w| *w as f32);
                 Box::new(ExternalField {

@@ -14,8 +14,10 @@ use springs::{
 use crate::lanes;
 
 mod chain;
+mod twist;
 pub use chain::BendingDamping;
 use chain::ChainStencil;
+pub use twist::Twist;
 
 fn bad(name: &str, message: String) -> SimError {
     SimError::Effect {
