@@ -110,6 +110,11 @@ pub struct DiagnoseArgs {
     /// with it on held-out error (by default the signature breaks such ties).
     #[arg(long)]
     pub no_tie_break: bool,
+    /// Score only the optimiser's points in each refit's final rescoring, not the refit's
+    /// start too (the rule before session 95: a control refit could then end worse than the
+    /// model as given; `docs/gap.md`, Method 1).
+    #[arg(long)]
+    pub drop_start: bool,
     /// Least held-out shrinkage (fraction) a candidate, and the effect inside it, must reach
     /// besides an interval above 0 to count as significant (`gap::VerdictRule`).
     #[arg(long, default_value_t = gap::VerdictRule::default().min_shrinkage)]
@@ -195,6 +200,7 @@ fn config_from(args: &DiagnoseArgs, run_effects: &[BaseEffect]) -> anyhow::Resul
             None => run_effects.to_vec(),
         },
         probe: !args.no_probe,
+        keep_start: !args.drop_start,
         rule: gap::VerdictRule {
             signature_tie_break: !args.no_tie_break,
             min_shrinkage: args.min_shrinkage,

@@ -113,6 +113,7 @@ pub fn run(args: &FitArgs) -> anyhow::Result<BackboneFile> {
         seed: args.seed,
         rescore: args.rescore,
         rescore_scenes: args.rescore_scenes,
+        rescore_start: false,
     };
     anyhow::ensure!(
         config.population >= 2 && config.samples >= 1 && config.generations >= 1,

@@ -41,6 +41,12 @@ pub struct FitConfig {
     /// of a large dataset costs at most `(rescore + 1) × rescore_scenes` rollouts.
     #[serde(default)]
     pub rescore_scenes: usize,
+    /// With [`rescore`](Self::rescore): also score the run's start (the family's `x0`) in the
+    /// final rescoring, so that a refit from a fitted model never ends worse than where it
+    /// started by the rescoring's loss (ties go to the earlier contenders: the mean and the
+    /// generations' best). Off: the reference's rule, the optimiser's points only.
+    #[serde(default)]
+    pub rescore_start: bool,
 }
 
 impl Default for FitConfig {
@@ -53,6 +59,7 @@ impl Default for FitConfig {
             seed: 0,
             rescore: 0,
             rescore_scenes: 0,
+            rescore_start: false,
         }
     }
 }
@@ -116,8 +123,12 @@ pub struct Rescore {
 /// One contender of the final rescoring.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Contender {
-    /// Generation whose best candidate this is; `None` for the optimiser's final mean.
+    /// Generation whose best candidate this is; `None` for the optimiser's final mean and for
+    /// the start.
     pub generation: Option<usize>,
+    /// The run's start ([`FitConfig::rescore_start`]).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub start: bool,
     /// Mean loss over the rescored scenes, m².
     pub loss: f64,
 }
@@ -210,6 +221,7 @@ pub fn fit<F: Family>(
                 generations: config.generations,
                 rescore: config.rescore,
                 rescore_scenes: config.rescore_scenes,
+                rescore_start: config.rescore_start,
                 ..ck.config.clone()
             };
             let substep = ck.substep.unwrap_or(springs::Substep::AUTO);
@@ -478,18 +490,23 @@ fn rescore_run<F: Family>(
     });
     order.truncate(k);
     let mut reals = vec![params.to_real(&es.mean())?];
-    let mut labels = vec![None];
+    let mut labels = vec![(None, false)];
     for g in order {
         reals.push(outcome.generation_best[g].clone());
-        labels.push(Some(g));
+        labels.push((Some(g), false));
+    }
+    if config.rescore_start {
+        reals.push(family.x0());
+        labels.push((None, true));
     }
     let scored = rescored_scenes(scenes.len(), config);
     let losses = losses_on(family, &reals, scenes, &scored);
     let contenders: Vec<Contender> = losses
         .chunks(scored.len())
         .zip(labels)
-        .map(|(l, generation)| Contender {
+        .map(|(l, (generation, start))| Contender {
             generation,
+            start,
             loss: l.iter().sum::<f64>() / scored.len() as f64,
         })
         .collect();

@@ -82,6 +82,7 @@ fn fit_reduces_loss_towards_the_truth() {
         seed: 3,
         rescore: 0,
         rescore_scenes: 0,
+        rescore_start: false,
     };
     let mut seen = 0;
     let out = fit(&scenes, &family, &config, None, &mut |_| seen += 1).unwrap();
@@ -123,6 +124,7 @@ fn resumed_fit_equals_uninterrupted() {
         seed: 11,
         rescore: 2,
         rescore_scenes: 0,
+        rescore_start: false,
     };
     let whole = fit(&scenes, &family, &config, None, &mut |_| {}).unwrap();
 
@@ -166,6 +168,7 @@ fn staged_fit_equals_uninterrupted_and_a_look_halfway_changes_nothing() {
         seed: 5,
         rescore: 2,
         rescore_scenes: 2,
+        rescore_start: false,
     };
     let mut whole = fit(&scenes, &family, &config, None, &mut |_| {}).unwrap();
 
@@ -213,6 +216,7 @@ fn rescoring_keeps_the_best_contender_on_all_scenes() {
         seed: 5,
         rescore: 0,
         rescore_scenes: 0,
+        rescore_start: false,
     };
     let mut plain = fit(&scenes, &family, &config, None, &mut |_| {}).unwrap();
     assert!(plain.rescored.is_none());
@@ -252,6 +256,7 @@ fn capped_rescoring_scores_every_contender_on_one_seeded_subset() {
         seed: 5,
         rescore: 3,
         rescore_scenes: 0,
+        rescore_start: false,
     };
     let mut all = fit(&scenes, &family, &config, None, &mut |_| {}).unwrap();
     assert_eq!(all.rescored.as_ref().unwrap().scenes, 4);
@@ -296,4 +301,87 @@ fn capped_rescoring_scores_every_contender_on_one_seeded_subset() {
             .iter()
             .all(|c| c.loss >= r.contenders[r.chosen].loss)
     );
+}
+
+/// [`BackboneFamily`] searched from a start of our choosing.
+struct StartingAt {
+    inner: BackboneFamily,
+    start: Vec<f64>,
+}
+
+impl Family for StartingAt {
+    fn name(&self) -> String {
+        self.inner.name()
+    }
+    fn parameters(&self) -> &cmaes::Parameters {
+        self.inner.parameters()
+    }
+    fn x0(&self) -> Vec<f64> {
+        self.start.clone()
+    }
+    fn build(&self, real: &[f64]) -> (SpringParams, springs::BackboneOptions) {
+        self.inner.build(real)
+    }
+}
+
+#[test]
+fn a_fit_that_keeps_its_start_never_ends_worse_than_it() {
+    let (_, scenes) = synthetic_scenes(&truth(), 4);
+    let plain = BackboneFamily::new(springs::REFERENCE_BOUNDS).unwrap();
+    let full = |family: &dyn Fn(&[f64], &Scene) -> f64, real: &[f64]| {
+        scenes.iter().map(|s| family(real, s)).sum::<f64>() / scenes.len() as f64
+    };
+    let loss = |real: &[f64], s: &Scene| scene_loss(&plain, real, s);
+    // A good start (a longer fit's result), then a short, wide search from it: the points
+    // the optimiser scores lie farther from the data than where it began.
+    let first = FitConfig {
+        population: 6,
+        generations: 12,
+        samples: 4,
+        sigma0: 0.2,
+        seed: 5,
+        rescore: 3,
+        rescore_scenes: 0,
+        rescore_start: false,
+    };
+    let good = fit(&scenes, &plain, &first, None, &mut |_| {})
+        .unwrap()
+        .best;
+    let family = StartingAt {
+        inner: plain.clone(),
+        start: good.clone(),
+    };
+    let mut config = FitConfig {
+        generations: 1,
+        sigma0: 0.5,
+        seed: 9,
+        ..first
+    };
+    let mut without = fit(&scenes, &family, &config, None, &mut |_| {}).unwrap();
+    config.rescore_start = true;
+    let mut with = fit(&scenes, &family, &config, None, &mut |_| {}).unwrap();
+    for g in without.history.iter_mut().chain(with.history.iter_mut()) {
+        g.wall_s = 0.0;
+    }
+    assert_eq!(
+        without.history, with.history,
+        "only the final choice differs"
+    );
+    let r = with.rescored.as_ref().unwrap();
+    let last = r.contenders.last().unwrap();
+    assert!(last.start && last.generation.is_none());
+    assert_eq!(
+        r.contenders.len(),
+        without.rescored.as_ref().unwrap().contenders.len() + 1
+    );
+    assert!(with.best_loss <= full(&loss, &good));
+    assert!(with.best_loss <= without.best_loss);
+    // The search does land worse, so the start is what the fit keeps.
+    assert!(
+        without.best_loss > full(&loss, &good),
+        "{} vs {}",
+        without.best_loss,
+        full(&loss, &good)
+    );
+    assert_eq!(with.best, good);
 }

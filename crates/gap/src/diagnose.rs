@@ -59,6 +59,13 @@ pub struct DiagnoseConfig {
     /// (docs/gap.md).
     #[serde(default)]
     pub rescore_scenes: usize,
+    /// Score every refit's start too in its final rescoring ([`fit::FitConfig::rescore_start`]):
+    /// the control then never ends worse on the training episodes than the model as given,
+    /// nor a candidate's refit than the model as given with the effect at its start strength.
+    /// Default on since session 95 (`docs/gap.md`, Method 1); off in every report written
+    /// before it existed, hence the serde default.
+    #[serde(default)]
+    pub keep_start: bool,
     /// A refined stiffness field (log factor per tracked particle, `fit::refine_stiffness`)
     /// kept at its values in every model of the diagnosis; `None` (the default, and every
     /// report written before it existed): no field.
@@ -139,6 +146,7 @@ impl Default for DiagnoseConfig {
             signature_scenes: 4,
             rescore: 3,
             rescore_scenes: 64,
+            keep_start: true,
             field: None,
             race: 0,
             probe_factor: 4,
@@ -596,6 +604,7 @@ pub fn diagnose(
         seed: config.seed,
         rescore: config.rescore,
         rescore_scenes: config.rescore_scenes,
+        rescore_start: config.keep_start,
     };
     check_distinct(&config.base, None)?;
     // The fitted backbone as given.

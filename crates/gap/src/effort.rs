@@ -104,7 +104,8 @@ pub fn effort(
     // A generation scores every candidate on `samples` training scenes, all of them when
     // there are fewer.
     let generation = config.population * config.samples.min(n).max(1);
-    // The optimiser's mean and the best of up to `rescore` generations of `generations`.
+    // The optimiser's mean, the best of up to `rescore` generations of `generations`, and the
+    // refit's start when it is kept (`keep_start`).
     let rescoring_of = |generations: usize| {
         if config.rescore > 0 {
             let scenes = if config.rescore_scenes == 0 {
@@ -112,7 +113,7 @@ pub fn effort(
             } else {
                 config.rescore_scenes.min(n)
             };
-            (config.rescore.min(generations) + 1) * scenes
+            (config.rescore.min(generations) + 1 + usize::from(config.keep_start)) * scenes
         } else {
             0
         }
@@ -124,10 +125,12 @@ pub fn effort(
         .iter()
         .filter(|c| **c != Candidate::ExternalField && !config.base.iter().any(|b| b.effect == **c))
         .count();
-    // A raced refit runs half the generations and a look at two contenders on the race's
-    // scenes; the second half and the rescoring only if it is kept.
+    // A raced refit runs half the generations and a look at two contenders (three when the
+    // start is kept) on the race's scenes; the second half and the rescoring only if it is
+    // kept.
     let half = config.generations.div_ceil(2);
-    let raced_half = half * generation + 2 * RACE_SCENES.min(n);
+    let look = (2 + usize::from(config.keep_start)) * RACE_SCENES.min(n);
+    let raced_half = half * generation + look;
     let second_half = (config.generations - half) * generation + rescoring;
     // The probe is refitted from two starts (the residuals' focus and its broad start); with a
     // race the two are raced and one is finished, to a multiple of the library's generations
@@ -136,7 +139,7 @@ pub fn effort(
     let probe_generation = config.probe_population() * config.samples.min(n).max(1);
     let probe_rescoring = rescoring_of(probe_generations);
     let probe_whole = probe_generations * probe_generation + probe_rescoring;
-    let probe_raced_half = half * probe_generation + 2 * RACE_SCENES.min(n);
+    let probe_raced_half = half * probe_generation + look;
     let probe = match (config.probe, config.race > 0) {
         (false, _) => 0,
         (true, false) => 2 * probe_whole,

@@ -13,7 +13,8 @@ use crate::candidates::{Candidate, CandidateFamily};
 use crate::diagnose::{DiagnoseConfig, Model, RACE_SCENES};
 
 /// A raced refit's first half: started, advanced half of `config.generations`, and its look
-/// (the optimiser's mean and the best generation's best on [`RACE_SCENES`] training scenes).
+/// (the optimiser's mean, the best generation's best and, with
+/// [`DiagnoseConfig::keep_start`], the refit's start, on [`RACE_SCENES`] training scenes).
 fn first_half(
     train: &[Scene],
     family: &CandidateFamily,

@@ -61,6 +61,7 @@ fn without_base_effects_the_control_is_the_plain_backbone_refit() {
         seed: cfg.seed,
         rescore: cfg.rescore,
         rescore_scenes: cfg.rescore_scenes,
+        rescore_start: cfg.keep_start,
     };
     let out = fit::fit(&train, &plain, &fit_cfg, None, &mut |_| {}).unwrap();
     let fitted: Vec<f64> = d.control.fitted.iter().map(|(_, v)| *v).collect();
@@ -199,4 +200,37 @@ fn a_refined_field_is_kept_in_every_model() {
         ..tiny(Vec::new())
     };
     assert!(gap::diagnose(&train, &val, &backbone(), &short, &mut |_| {}).is_err());
+}
+
+#[test]
+fn a_control_that_keeps_its_start_is_no_worse_on_training_than_the_model_as_given() {
+    let (train, val) = (scenes(dataset::Split::Train), scenes(dataset::Split::Val));
+    // One wide generation: its points all land farther from the training data than the
+    // model as given (measured on this fixture with seed 0).
+    let cfg = |keep_start| DiagnoseConfig {
+        rescore: 2,
+        keep_start,
+        generations: 1,
+        sigma0: 0.5,
+        seed: 0,
+        ..tiny(Vec::new())
+    };
+    let frame = gap::material_frame(&train).unwrap();
+    let given = CandidateFamily::new(backbone(), None, frame).unwrap();
+    let start = given.x0();
+    let given_loss = train
+        .iter()
+        .map(|s| fit::scene_loss(&given, &start, s))
+        .sum::<f64>()
+        / train.len() as f64;
+    let off = gap::diagnose(&train, &val, &backbone(), &cfg(false), &mut |_| {}).unwrap();
+    assert!(
+        off.control.train_loss_m2 > given_loss,
+        "the scenario needs a worse search"
+    );
+    let on = gap::diagnose(&train, &val, &backbone(), &cfg(true), &mut |_| {}).unwrap();
+    assert_eq!(on.control.train_loss_m2, given_loss);
+    let fitted: Vec<f64> = on.control.fitted.iter().map(|(_, v)| *v).collect();
+    assert_eq!(fitted, start);
+    assert_eq!(on.control.heldout_mde_cm, on.backbone_as_given.mde_cm);
 }

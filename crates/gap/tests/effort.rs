@@ -18,6 +18,8 @@ fn small() -> DiagnoseConfig {
             Candidate::ActuationDelay,
             Candidate::Bending,
         ],
+        // The rule before session 95; the start's extra contender is counted on its own below.
+        keep_start: false,
         ..DiagnoseConfig::default()
     }
 }
@@ -50,6 +52,27 @@ fn rollouts_are_counted_as_the_diagnosis_runs_them() {
     // probe's two starts' first two generations and their looks (two contenders on up to
     // RACE_SCENES scenes); then the kept candidate's and the kept start's last generation and
     // rescoring.
+    // Keeping each refit's start scores it among the rescoring's contenders and the race's
+    // looks: one more on every training scene per refit, on RACE_SCENES per look.
+    let kept = |race| DiagnoseConfig {
+        keep_start: true,
+        race,
+        ..small()
+    };
+    let kept_refit = 3 * 3 + 3 * n;
+    assert_eq!(
+        gap::effort(&train, &val, &backbone(), &kept(0), auto)
+            .unwrap()
+            .refit_rollouts,
+        6 * kept_refit
+    );
+    let (kept_first, kept_second) = (2 * 3 + 3 * gap::RACE_SCENES.min(n), 3 + 3 * n);
+    assert_eq!(
+        gap::effort(&train, &val, &backbone(), &kept(1), auto)
+            .unwrap()
+            .refit_rollouts,
+        kept_refit + 2 * kept_first + kept_second + 3 * kept_first + kept_second
+    );
     let raced_cfg = DiagnoseConfig { race: 1, ..small() };
     let raced = gap::effort(&train, &val, &backbone(), &raced_cfg, auto).unwrap();
     let look = 2 * gap::RACE_SCENES.min(n);

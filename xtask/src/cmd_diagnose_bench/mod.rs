@@ -247,6 +247,10 @@ pub struct DiagnoseBenchArgs {
     /// included (as `diagnose --min-shrinkage`).
     #[arg(long, default_value_t = gap::VerdictRule::default().min_shrinkage)]
     pub min_shrinkage: f64,
+    /// Every diagnosis scores only the optimiser's points in each refit's final rescoring (as
+    /// `diagnose --drop-start`; the bench's rule before session 95).
+    #[arg(long)]
+    pub drop_start: bool,
     /// Where generated datasets and reports go.
     #[arg(long, default_value = "target/diagnose-bench")]
     pub work: PathBuf,
@@ -320,6 +324,7 @@ fn fit_backbone(
         seed: args.seed,
         rescore: args.rescore,
         rescore_scenes: args.rescore_scenes,
+        rescore_start: false,
     };
     let out = fit::fit(train, &family, &cfg, None, &mut |_| {})?;
     Ok((BackboneFamily::params(&out.best), out, cfg))
@@ -360,6 +365,7 @@ fn case_config(base: &[BaseEffect], args: &DiagnoseBenchArgs, case: bool) -> Dia
         seed,
         rescore: args.rescore,
         rescore_scenes: args.rescore_scenes,
+        keep_start: !args.drop_start,
         base: base.to_vec(),
         rule: gap::VerdictRule {
             min_shrinkage: args.min_shrinkage,
@@ -383,6 +389,7 @@ fn control_only(
         seed: args.seed,
         rescore: args.rescore,
         rescore_scenes: args.rescore_scenes,
+        keep_start: !args.drop_start,
         base: base.to_vec(),
         candidates: Vec::new(),
         probe: false,
