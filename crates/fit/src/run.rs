@@ -33,12 +33,14 @@ pub struct FitConfig {
     /// `k > 0`: after the last generation the optimiser's mean and the best candidates of the
     /// `k` generations with the lowest sampled loss are scored on *all* scenes (or
     /// [`rescore_scenes`](Self::rescore_scenes) of them), and the best of those by that loss is
-    /// kept (`k + 1` extra evaluations over every scored scene).
+    /// kept (`k + 1` extra evaluations over every scored scene, `k + 2` with
+    /// [`rescore_start`](Self::rescore_start)).
     #[serde(default)]
     pub rescore: usize,
     /// Most scenes the final rescoring scores (0: all). With more scenes than this, a subset
     /// of this many drawn with the seed, the same for every contender, so that the rescoring
-    /// of a large dataset costs at most `(rescore + 1) × rescore_scenes` rollouts.
+    /// of a large dataset costs at most `(rescore + 1) × rescore_scenes` rollouts (one more
+    /// set with [`rescore_start`](Self::rescore_start)).
     #[serde(default)]
     pub rescore_scenes: usize,
     /// With [`rescore`](Self::rescore): also score the run's start (the family's `x0`) in the
