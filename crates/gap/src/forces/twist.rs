@@ -194,9 +194,8 @@ impl TwistState {
 /// Unit tangent of edge `j` of the chain (from `order[j]` to `order[j + 1]`); a collapsed
 /// edge gives zero.
 fn tangent(x: &[Vec3A], order: &[u32], j: usize) -> DVec3 {
-    let a = DVec3::from(Vec3A::to_array(&x[order[j] as usize]).map(f64::from));
-    let b = DVec3::from(Vec3A::to_array(&x[order[j + 1] as usize]).map(f64::from));
-    (b - a).normalize_or_zero()
+    let (a, b) = (x[order[j] as usize], x[order[j + 1] as usize]);
+    (b.as_dvec3() - a.as_dvec3()).normalize_or_zero()
 }
 
 /// The smallest rotation taking unit `a` to unit `b`, applied to `u` (none when they are
@@ -250,7 +249,7 @@ fn wrap(a: f64) -> f64 {
 
 /// Adds `g ∂m/∂x` (the holonomy gradient of the total twist at `x`) to `out`.
 fn add_twist_gradient(x: &[Vec3A], order: &[u32], g: f64, out: &mut [Vec3A]) {
-    let at = |p: u32| DVec3::from(Vec3A::to_array(&x[p as usize]).map(f64::from));
+    let at = |p: u32| x[p as usize].as_dvec3();
     for w in order.windows(3) {
         let (a, b, c) = (at(w[0]), at(w[1]), at(w[2]));
         let (e1, e2) = (b - a, c - b);
@@ -262,10 +261,9 @@ fn add_twist_gradient(x: &[Vec3A], order: &[u32], g: f64, out: &mut [Vec3A]) {
         let kb = e1.cross(e2) * (2.0 / denom);
         let before = kb * (-g / (2.0 * l1));
         let after = kb * (g / (2.0 * l2));
-        let to = |v: DVec3| Vec3A::new(v.x as f32, v.y as f32, v.z as f32);
-        out[w[0] as usize] += to(before);
-        out[w[2] as usize] += to(after);
-        out[w[1] as usize] -= to(before + after);
+        out[w[0] as usize] += Vec3A::from(before.as_vec3());
+        out[w[2] as usize] += Vec3A::from(after.as_vec3());
+        out[w[1] as usize] -= Vec3A::from((before + after).as_vec3());
     }
 }
 
