@@ -6,7 +6,7 @@ use std::any::Any;
 use glam::{DVec3, Vec3A};
 use springs::{Backbone, Effect, ModelSetup, SimError, SubstepContext};
 
-use super::{bad, check_finite};
+use super::{ChainStencil, bad, check_finite};
 
 /// Torsion of a cable clamped at both ends, quasi-static and isotropic (a discrete elastic
 /// rod's twist energy with the twist spread evenly along the rod): `E = GJ/(2L) (m − m₀)²`,
@@ -86,12 +86,8 @@ impl Effect for Twist {
                 "needs a chain: the particles' order along a cable (a `chain` dataset)".into(),
             ));
         };
-        let x = model.rest_positions;
-        let length: f64 = order
-            .windows(2)
-            .map(|w| f64::from(x[w[0] as usize].distance(x[w[1] as usize])))
-            .sum();
-        let mean = length / (order.len() - 1) as f64;
+        let mean = f64::from(ChainStencil::new(model.rest_positions, order).mean_length);
+        let length = mean * (order.len() - 1) as f64;
         self.order = order.to_vec();
         let gripper = |p: u32| usize::try_from(model.held[p as usize]).ok();
         self.clamps = match (gripper(order[0]), gripper(order[order.len() - 1])) {
@@ -162,31 +158,28 @@ impl TwistState {
     fn advance(&mut self, x: &[Vec3A], order: &[u32]) {
         let n = order.len();
         let (t_first, t_last) = (tangent(x, order, 0), tangent(x, order, n - 2));
-        let frames = match self.frames {
-            None => {
-                let first = normal_to(t_first);
-                let last = carry_along(x, order, first);
-                EndFrames {
-                    first,
-                    last,
-                    first_tangent: t_first,
-                    last_tangent: t_last,
-                }
-            }
-            Some(f) => EndFrames {
-                first: renormal(transport(f.first_tangent, t_first, f.first), t_first),
-                last: renormal(transport(f.last_tangent, t_last, f.last), t_last),
+        let Some(f) = self.frames else {
+            // A rollout's first state is its rest: the far frame is the near one carried along
+            // the chain, untwisted by construction.
+            let first = normal_to(t_first);
+            self.frames = Some(EndFrames {
+                first,
+                last: carry_along(x, order, first),
                 first_tangent: t_first,
                 last_tangent: t_last,
-            },
+            });
+            (self.twist, self.rest) = (0.0, 0.0);
+            return;
         };
+        let frames = EndFrames {
+            first: renormal(transport(f.first_tangent, t_first, f.first), t_first),
+            last: renormal(transport(f.last_tangent, t_last, f.last), t_last),
+            first_tangent: t_first,
+            last_tangent: t_last,
+        };
+        // The measured angle lies in (−π, π]; the twist follows it continuously.
         let raw = twist_between(x, order, frames.first, frames.last);
-        let step = wrap(raw - wrap(self.twist));
-        if self.frames.is_some() {
-            self.twist += step;
-        } else {
-            (self.twist, self.rest) = (raw, raw);
-        }
+        self.twist += wrap(raw - wrap(self.twist));
         self.frames = Some(frames);
     }
 }
