@@ -75,16 +75,24 @@ fn parse_range(text: &str) -> Result<EpisodeRange, String> {
     Ok(EpisodeRange { start, end })
 }
 
-/// What `compare` reads of an eval report.
+/// What `compare` (and `screen`) read of an eval report.
 #[derive(Deserialize)]
-struct EvalFile {
-    model: String,
-    object: String,
-    split: String,
-    protocol: String,
-    steps: usize,
+pub(crate) struct EvalFile {
+    pub(crate) model: String,
+    /// Absent in reports written before it was recorded.
     #[serde(default)]
-    per_episode: Option<Vec<EpisodeScore>>,
+    pub(crate) dataset: Option<String>,
+    pub(crate) object: String,
+    pub(crate) split: String,
+    pub(crate) protocol: String,
+    pub(crate) steps: usize,
+    #[serde(default)]
+    pub(crate) per_episode: Option<Vec<EpisodeScore>>,
+    #[serde(default)]
+    pub(crate) diverged: Option<usize>,
+    /// The report's summaries (`mde_cm`, `deform_l1_m`, ...), each with its `mean`.
+    #[serde(default)]
+    pub(crate) metrics: serde_json::Value,
 }
 
 /// One metric's paired comparison.
@@ -145,8 +153,8 @@ pub struct Comparison {
 const FEW_UNITS: usize = 10;
 
 pub fn run(args: &CompareArgs) -> anyhow::Result<()> {
-    let before = read(&args.before)?;
-    let after = read(&args.after)?;
+    let before = read_eval(&args.before)?;
+    let after = read_eval(&args.after)?;
     let c = compare(
         &before,
         &after,
@@ -206,14 +214,14 @@ pub fn run(args: &CompareArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn read(path: &Path) -> anyhow::Result<EvalFile> {
+pub(crate) fn read_eval(path: &Path) -> anyhow::Result<EvalFile> {
     let text =
         std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
     serde_json::from_str(&text).with_context(|| format!("{} is not an eval report", path.display()))
 }
 
 /// Pairs the two reports' episodes and compares each metric both report.
-fn compare(
+pub(crate) fn compare(
     before: &EvalFile,
     after: &EvalFile,
     range: Option<EpisodeRange>,
@@ -356,6 +364,9 @@ mod tests {
                     })
                     .collect(),
             ),
+            dataset: None,
+            diverged: Some(0),
+            metrics: serde_json::Value::Null,
         }
     }
 

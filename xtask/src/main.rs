@@ -21,6 +21,7 @@ mod cmd_metrics;
 mod cmd_plan;
 mod cmd_refine;
 mod cmd_render;
+mod cmd_screen;
 mod cmd_train;
 mod common;
 mod eval_horizon;
@@ -48,6 +49,9 @@ enum Command {
     Chain(cmd_chain::ChainArgs),
     /// Write a diagnosis's report.html again from its report.json (this version's page).
     ReportPage(cmd_diagnose::ReportPageArgs),
+    /// Score a run's backbone with one effect added at fixed settings, each against the model
+    /// without it (paired bootstrap), with no refit; one run directory per setting.
+    Screen(cmd_screen::ScreenArgs),
     /// Check the diagnosis on reference-world data with withheld effects.
     DiagnoseBench(cmd_diagnose::DiagnoseBenchArgs),
     /// Fit the backbone's parameters with CMA-ES on a dataset's train split.
@@ -89,6 +93,7 @@ fn main() -> anyhow::Result<()> {
         Command::Chain(args) => cmd_chain::run(&args).map(drop),
         Command::ReportPage(args) => cmd_diagnose::report_page(&args),
         Command::DiagnoseBench(args) => cmd_diagnose::run_bench(&args).map(drop),
+        Command::Screen(args) => cmd_screen::run(&args).map(drop),
         Command::Fit(args) => cmd_fit::run(&args).map(drop),
         Command::Refine(args) => cmd_refine::run(&args),
         Command::Eval(args) => cmd_eval::run(&args).map(drop),
