@@ -44,7 +44,12 @@ pub struct ScreenArgs {
     /// parameters (`docs/gap.md`, Candidates); an effect with several parameters takes each
     /// setting's values colon-separated in their order, e.g. `--effect plasticity --values
     /// 0.01:5,0.02:20`.
-    #[arg(long, required = true, value_delimiter = ',')]
+    #[arg(
+        long,
+        required = true,
+        value_delimiter = ',',
+        allow_hyphen_values = true
+    )]
     pub values: Vec<String>,
     /// Split scored (a development copy's `val`, from `dev-split`, keeps `test` for the kept
     /// setting).
@@ -470,10 +475,19 @@ fn print_table(report: &ScreenReport, episodes: usize) {
         }
     }
     if let Some(i) = report.lowest_mde {
-        println!(
-            "  * lowest MDE: its run is {} (score it on another split with `eval --run` there)",
-            report.settings[i].run
-        );
+        let below = match (report.settings[i].mde_cm, report.without.mde_cm) {
+            (Some(with), Some(without)) => with < without,
+            _ => false,
+        };
+        if below {
+            println!(
+                "  * lowest MDE: its run is {} (score it on another split with `eval --run` \
+                 there)",
+                report.settings[i].run
+            );
+        } else {
+            println!("  * lowest MDE, but no setting scores below the model without the effect");
+        }
     }
 }
 
