@@ -417,6 +417,13 @@ fn print_table(report: &ScreenReport, episodes: usize) {
          95 % bootstrap interval",
         report.model, report.effect, report.split, episodes, report.block
     );
+    if report.block == 1 && report.protocol != "deform" {
+        // As `compare` says: episodes cut from one recording are not independent samples.
+        println!(
+            "  (single episodes resampled: if they are cut from fewer, longer recordings, as the \
+             reference world's are into 10, the intervals are too narrow: --block 10)"
+        );
+    }
     let l1 = |v: Option<f64>| {
         if deform {
             v.map_or("       –".into(), |l| format!("  {l:.4}"))
