@@ -238,7 +238,7 @@ fn score(
     backbone: &crate::common::BackboneFile,
     want: &Want,
 ) -> anyhow::Result<(EvalFile, bool)> {
-    let json = dir.join(format!("eval_{}.json", args.split));
+    let json = eval_path(dir, args.split);
     // The text `write_json` writes.
     let text = serde_json::to_string_pretty(backbone)?;
     if let Some(report) = reusable(dir, &text, &json, want) {
@@ -260,6 +260,27 @@ fn score(
         autograd: false,
     })?;
     Ok((read_eval(&json)?, false))
+}
+
+/// The eval report a setting's run directory holds for `split`.
+fn eval_path(dir: &Path, split: Split) -> PathBuf {
+    dir.join(format!("eval_{split}.json"))
+}
+
+impl ScreenRow {
+    /// The row of the model at `values` in `dir`, before it is scored.
+    fn unscored(values: Vec<f64>, dir: &Path, split: Split) -> Self {
+        ScreenRow {
+            values,
+            run: dir.display().to_string(),
+            eval: eval_path(dir, split).display().to_string(),
+            mde_cm: None,
+            deform_l1_m: None,
+            against_without: Vec::new(),
+            reused: false,
+            error: None,
+        }
+    }
 }
 
 fn mean_of(report: &EvalFile, key: &str) -> Option<f64> {
@@ -335,17 +356,10 @@ pub fn run(args: &ScreenArgs) -> anyhow::Result<ScreenReport> {
     let (before, reused) = score(args, &without_dir, &backbone, &want)
         .context("the run's model without the effect")?;
     let without = ScreenRow {
-        values: Vec::new(),
-        run: without_dir.display().to_string(),
-        eval: without_dir
-            .join(format!("eval_{}.json", args.split))
-            .display()
-            .to_string(),
         mde_cm: mean_of(&before, "mde_cm"),
         deform_l1_m: mean_of(&before, "deform_l1_m"),
-        against_without: Vec::new(),
         reused,
-        error: None,
+        ..ScreenRow::unscored(Vec::new(), &without_dir, args.split)
     };
     let mut rows = Vec::new();
     for (k, setting) in settings.iter().enumerate() {
@@ -353,17 +367,7 @@ pub fn run(args: &ScreenArgs) -> anyhow::Result<ScreenReport> {
         let dir = args.out.join(setting_dir(setting));
         let mut model = backbone.clone();
         model.effects.push(setting.clone());
-        let eval = dir.join(format!("eval_{}.json", args.split));
-        let mut row = ScreenRow {
-            values: setting.values.clone(),
-            run: dir.display().to_string(),
-            eval: eval.display().to_string(),
-            mde_cm: None,
-            deform_l1_m: None,
-            against_without: Vec::new(),
-            reused: false,
-            error: None,
-        };
+        let mut row = ScreenRow::unscored(setting.values.clone(), &dir, args.split);
         match score(args, &dir, &model, &want).and_then(|(after, reused)| {
             let c = compare(&before, &after, None, args.block, args.resamples, args.seed)?;
             Ok((after, reused, c))
