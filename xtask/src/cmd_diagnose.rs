@@ -115,6 +115,12 @@ pub struct DiagnoseArgs {
     /// model as given; `docs/gap.md`, Method 1).
     #[arg(long)]
     pub drop_start: bool,
+    /// Hold the base effects (`--with`, or the run's) at their values in the control and every
+    /// candidate refit: only the backbone's stiffness, damping and friction and the candidate
+    /// are refitted (`gap::DiagnoseConfig::hold_base`; by default the base effects are
+    /// refitted with them).
+    #[arg(long)]
+    pub hold_base: bool,
     /// Least held-out shrinkage (fraction) a candidate, and the effect inside it, must reach
     /// besides an interval above 0 to count as significant (`gap::VerdictRule`).
     #[arg(long, default_value_t = gap::VerdictRule::default().min_shrinkage)]
@@ -201,6 +207,7 @@ fn config_from(args: &DiagnoseArgs, run_effects: &[BaseEffect]) -> anyhow::Resul
         },
         probe: !args.no_probe,
         keep_start: !args.drop_start,
+        hold_base: args.hold_base,
         rule: gap::VerdictRule {
             signature_tie_break: !args.no_tie_break,
             min_shrinkage: args.min_shrinkage,

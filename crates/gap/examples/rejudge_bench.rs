@@ -6,6 +6,8 @@
 //! ```sh
 //! cargo run --release -p pgrd-gap --example rejudge_bench -- <bench.json> <work-dir> 0.05,0.07
 //! cargo run --release -p pgrd-gap --example rejudge_bench -- <bench.json> <work-dir> 0.05/0.1,0.05/0.05
+//! # the tie-break's least cosine as a third part (`gap::VerdictRule::tie_break_min_cosine`)
+//! cargo run --release -p pgrd-gap --example rejudge_bench -- <bench.json> <work-dir> 0.1/0.1/0,0.1/0.1/0.2
 //! ```
 //!
 //! Exact for a case as long as its object's base search (the no-effect diagnoses that chose the
@@ -27,20 +29,27 @@ fn read(path: &Path) -> anyhow::Result<Diagnosis> {
     serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))
 }
 
-/// A rule given on the command line: a floor and, optionally, a probe margin.
+/// A rule given on the command line: a floor and, optionally, a probe margin and the
+/// tie-break's least cosine.
 #[derive(Clone, Copy)]
 struct RuleSpec {
     floor: f64,
     probe_margin: Option<f64>,
+    min_cosine: Option<f64>,
 }
 
 impl RuleSpec {
     fn parse(text: &str) -> anyhow::Result<Self> {
-        let (floor, margin) = match text.trim().split_once('/') {
-            Some((f, m)) => (f, Some(m)),
-            None => (text.trim(), None),
-        };
+        let mut parts = text.trim().splitn(3, '/');
+        let floor = parts.next().unwrap_or_default();
+        let (margin, cosine) = (parts.next(), parts.next());
         Ok(RuleSpec {
+            min_cosine: cosine
+                .map(|c| {
+                    c.parse()
+                        .with_context(|| format!("tie-break cosine of {text:?}"))
+                })
+                .transpose()?,
             floor: floor
                 .parse()
                 .with_context(|| format!("floor of {text:?}"))?,
@@ -57,6 +66,9 @@ impl RuleSpec {
         VerdictRule {
             min_shrinkage: self.floor,
             probe_margin: self.probe_margin.unwrap_or(d.config.rule.probe_margin),
+            tie_break_min_cosine: self
+                .min_cosine
+                .unwrap_or(d.config.rule.tie_break_min_cosine),
             ..d.config.rule
         }
     }
@@ -64,9 +76,10 @@ impl RuleSpec {
 
 impl std::fmt::Display for RuleSpec {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        match self.probe_margin {
-            Some(m) => write!(f, "{}/{m}", self.floor),
-            None => write!(f, "{}", self.floor),
+        match (self.probe_margin, self.min_cosine) {
+            (Some(m), Some(c)) => write!(f, "{}/{m}/{c}", self.floor),
+            (Some(m), None) => write!(f, "{}/{m}", self.floor),
+            (None, _) => write!(f, "{}", self.floor),
         }
     }
 }
@@ -100,7 +113,9 @@ fn bench_answer(
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let [bench, work, floors] = args.as_slice() else {
-        bail!("usage: rejudge_bench <bench.json> <work-dir> <floor>[/<probe margin>][,...]");
+        bail!(
+            "usage: rejudge_bench <bench.json> <work-dir> <floor>[/<probe margin>[/<tie-break cosine>]][,...]"
+        );
     };
     let floors: Vec<RuleSpec> = floors
         .split(',')
@@ -194,7 +209,7 @@ fn main() -> anyhow::Result<()> {
         println!("{line}");
     }
     println!(
-        "\nright / counted per class, rule by rule (floor[/probe margin]: {})",
+        "\nright / counted per class, rule by rule (floor[/probe margin[/tie-break cosine]]: {})",
         floors
             .iter()
             .map(RuleSpec::to_string)

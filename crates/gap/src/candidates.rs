@@ -405,6 +405,8 @@ pub struct CandidateFamily {
     parameters: Parameters,
     /// A refined stiffness field held at its values (not refitted).
     field: Option<std::sync::Arc<Vec<f32>>>,
+    /// The base effects are held at their values (not refitted).
+    base_held: bool,
 }
 
 impl CandidateFamily {
@@ -456,7 +458,37 @@ impl CandidateFamily {
             frame,
             parameters: Parameters::new(p)?,
             field: None,
+            base_held: false,
         })
+    }
+
+    /// The same family with its base effects held at their values (`hold`) or refitted with
+    /// the backbone (the default): held, a refit moves the backbone's stiffness, damping and
+    /// friction and the candidate's values only, so the candidate is judged against the model
+    /// as it was given rather than against base effects free to trade their values for it.
+    pub fn with_base_held(mut self, hold: bool) -> Result<Self, GapError> {
+        if hold == self.base_held {
+            return Ok(self);
+        }
+        let all = self.parameters.params();
+        let n_base: usize = self.base_effects.iter().map(|b| b.values.len()).sum();
+        let mut p = all[..3].to_vec();
+        if hold {
+            p.extend_from_slice(&all[3 + n_base..]);
+        } else {
+            for b in &self.base_effects {
+                p.extend(b.effect.parameters());
+            }
+            p.extend_from_slice(&all[3..]);
+        }
+        self.parameters = Parameters::new(p)?;
+        self.base_held = hold;
+        Ok(self)
+    }
+
+    /// Whether the base effects are held at their values ([`CandidateFamily::with_base_held`]).
+    pub fn base_held(&self) -> bool {
+        self.base_held
     }
 
     /// The same family with every model's stiffness multiplied by a refined per-particle field
@@ -479,7 +511,7 @@ impl CandidateFamily {
     }
 
     /// Backbone parameters and effect values (base effects' in order, then the candidate's) of
-    /// a real vector.
+    /// a real vector; held base effects ([`CandidateFamily::with_base_held`]) at their values.
     pub fn split(&self, real: &[f64]) -> (SpringParams, Vec<f64>) {
         let params = SpringParams {
             stiffness: real[0] as f32,
@@ -487,11 +519,44 @@ impl CandidateFamily {
             ground_friction: real[2] as f32,
             ..self.base
         };
-        (params, real[3..].to_vec())
+        let mut values = Vec::with_capacity(real.len());
+        if self.base_held {
+            for b in &self.base_effects {
+                values.extend(&b.values);
+            }
+        }
+        values.extend(real.get(3..).unwrap_or(&[]));
+        (params, values)
     }
 
-    /// The base effects at the values of a real vector (e.g. a refit's best).
+    /// Every named value of a real vector: the optimised ones, with held base effects' values
+    /// in their places (the layout of a family that refits them, which
+    /// `Diagnosis::refitted_model` reads).
+    pub fn named_values(&self, real: &[f64]) -> Vec<(String, f64)> {
+        let names: Vec<String> = self
+            .parameters
+            .params()
+            .iter()
+            .map(|p| p.name.clone())
+            .collect();
+        let mut out: Vec<(String, f64)> = names.iter().cloned().zip(real.iter().copied()).collect();
+        if self.base_held {
+            let held = self.base_effects.iter().flat_map(|b| {
+                let names = b.effect.parameters().into_iter().map(|p| p.name);
+                names.zip(b.values.iter().copied())
+            });
+            let at = out.len().min(3);
+            out.splice(at..at, held);
+        }
+        out
+    }
+
+    /// The base effects at the values of a real vector (e.g. a refit's best); held ones at
+    /// their values.
     pub fn base_effects_at(&self, real: &[f64]) -> Vec<BaseEffect> {
+        if self.base_held {
+            return self.base_effects.clone();
+        }
         let mut at = 3;
         self.base_effects
             .iter()
@@ -532,8 +597,10 @@ impl Family for CandidateFamily {
             f64::from(b.damping).max(1e-3),
             f64::from(b.ground_friction),
         ];
-        for e in &self.base_effects {
-            x.extend(&e.values);
+        if !self.base_held {
+            for e in &self.base_effects {
+                x.extend(&e.values);
+            }
         }
         if let Some(c) = self.candidate {
             x.extend(c.start_in(&self.frame));

@@ -41,6 +41,12 @@ pub struct DiagnoseConfig {
     /// every candidate refit (empty: the plain backbone).
     #[serde(default)]
     pub base: Vec<BaseEffect>,
+    /// Hold the base effects at their values in the control and every candidate refit instead
+    /// of refitting them with the backbone ([`CandidateFamily::with_base_held`]); the fitted
+    /// lists in the report still name them, at their given values. Off by default (and in
+    /// every report written before it existed).
+    #[serde(default, skip_serializing_if = "is_false")]
+    pub hold_base: bool,
     /// Also fit the generic external-field probe (needed for `unknown`).
     pub probe: bool,
     /// Training scenes used for the residual signatures.
@@ -142,6 +148,7 @@ impl Default for DiagnoseConfig {
             rule: VerdictRule::default(),
             candidates: Candidate::LIBRARY.to_vec(),
             base: Vec::new(),
+            hold_base: false,
             probe: true,
             signature_scenes: 4,
             rescore: 3,
@@ -318,13 +325,7 @@ pub struct Diagnosis {
 }
 
 fn fitted_names(family: &CandidateFamily, real: &[f64]) -> Vec<(String, f64)> {
-    family
-        .parameters()
-        .params()
-        .iter()
-        .map(|p| p.name.clone())
-        .zip(real.iter().copied())
-        .collect()
+    family.named_values(real)
 }
 
 /// One refit of the diagnosis.
@@ -642,6 +643,7 @@ pub fn diagnose(
         |cand: Option<Candidate>, frame: &MaterialFrame| -> Result<CandidateFamily, GapError> {
             Ok(
                 CandidateFamily::with_base(*base, &config.base, cand, frame.clone())?
+                    .with_base_held(config.hold_base)?
                     .with_field(field.clone()),
             )
         };

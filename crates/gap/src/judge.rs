@@ -87,7 +87,11 @@ pub fn judge(
                 });
             }
             let best = &library[b];
-            let (name, tied) = break_tie((&best.effect, best.signature_cosine), &rivals);
+            let (name, tied) = break_tie(
+                (&best.effect, best.signature_cosine),
+                &rivals,
+                rule.tie_break_min_cosine,
+            );
             let c = library.iter().position(|e| e.effect == name);
             if tied.len() > 1 {
                 tie_break = Some(TieBreak {

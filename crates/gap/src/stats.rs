@@ -93,19 +93,32 @@ pub struct VerdictRule {
     /// it the largest shrinkage wins. Rules saved before the option read back as `false`.
     #[serde(default)]
     pub signature_tie_break: bool,
+    /// Least signature cosine a tied rival needs to be chosen over the candidate with the
+    /// largest shrinkage ([`break_tie`]); 0 (the default, and every rule saved before the
+    /// field existed): any larger cosine. A cosine of 0.1 says the effect's change of the
+    /// prediction explains 1 % of the residual's variance, too little to overrule the
+    /// held-out error.
+    #[serde(default)]
+    pub tie_break_min_cosine: f64,
 }
 
 impl VerdictRule {
-    /// Errors unless both thresholds lie in [0, 1) (shrinkages are fractions below 1).
+    /// Errors unless both thresholds lie in [0, 1) (shrinkages are fractions below 1) and the
+    /// tie-break's least cosine in [0, 1].
     pub fn check(&self) -> Result<(), GapError> {
-        if (0.0..1.0).contains(&self.min_shrinkage) && (0.0..1.0).contains(&self.probe_margin) {
-            Ok(())
-        } else {
-            Err(GapError::Config(format!(
+        if !((0.0..1.0).contains(&self.min_shrinkage) && (0.0..1.0).contains(&self.probe_margin)) {
+            return Err(GapError::Config(format!(
                 "the verdict rule's min_shrinkage and probe_margin must lie in [0, 1) (got {} and {})",
                 self.min_shrinkage, self.probe_margin
-            )))
+            )));
         }
+        if !(0.0..=1.0).contains(&self.tie_break_min_cosine) {
+            return Err(GapError::Config(format!(
+                "the verdict rule's tie_break_min_cosine must lie in [0, 1] (got {})",
+                self.tie_break_min_cosine
+            )));
+        }
+        Ok(())
     }
 }
 
@@ -115,6 +128,7 @@ impl Default for VerdictRule {
             min_shrinkage: 0.10,
             probe_margin: 0.10,
             signature_tie_break: true,
+            tie_break_min_cosine: 0.0,
         }
     }
 }
@@ -137,18 +151,21 @@ pub struct Rival {
 /// rival the best does not beat significantly (`best_vs_rival` interval reaching 0) is *tied*
 /// with it: on these held-out episodes either explains the data. Among the tied, the one whose
 /// signature (the change its effect makes to the prediction) points most along the observed
-/// residual is chosen. Returns the chosen name and the tied names (the best first); a single
-/// name when nothing is tied.
+/// residual is chosen, a rival only when its cosine is at least `min_cosine`. Returns the
+/// chosen name and the tied names (the best first); a single name when nothing is tied.
 ///
 /// ```
 /// use gap::{Comparison, Rival, break_tie};
 /// let close = Comparison { shrinkage: 0.05, ci95: [-0.04, 0.12] };
 /// let rival = Rival { effect: "grasp-slip".into(), signature_cosine: 0.75, best_vs_rival: close };
-/// let (chosen, tied) = break_tie(("plasticity", 0.27), &[rival]);
+/// let (chosen, tied) = break_tie(("plasticity", 0.27), &[rival.clone()], 0.0);
 /// assert_eq!(chosen, "grasp-slip");
 /// assert_eq!(tied, ["plasticity", "grasp-slip"]);
+/// // A rival whose signature explains too little of the residual does not overrule.
+/// let (chosen, _) = break_tie(("plasticity", 0.27), &[rival], 0.8);
+/// assert_eq!(chosen, "plasticity");
 /// ```
-pub fn break_tie(best: (&str, f64), rivals: &[Rival]) -> (String, Vec<String>) {
+pub fn break_tie(best: (&str, f64), rivals: &[Rival], min_cosine: f64) -> (String, Vec<String>) {
     let mut chosen = (best.0, best.1);
     let mut tied = vec![best.0.to_string()];
     for r in rivals {
@@ -156,7 +173,7 @@ pub fn break_tie(best: (&str, f64), rivals: &[Rival]) -> (String, Vec<String>) {
             continue;
         }
         tied.push(r.effect.clone());
-        if r.signature_cosine > chosen.1 {
+        if r.signature_cosine > chosen.1 && r.signature_cosine >= min_cosine {
             chosen = (&r.effect, r.signature_cosine);
         }
     }
@@ -276,11 +293,11 @@ mod tests {
         };
         // No rivals: the best.
         assert_eq!(
-            break_tie(("drag", 0.1), &[]),
+            break_tie(("drag", 0.1), &[], 0.0),
             ("drag".into(), vec!["drag".into()])
         );
         // The best beats the high-signature rival clearly: it stays.
-        let (chosen, tied) = break_tie(("drag", 0.1), &[rival("bending", 0.9, 0.01)]);
+        let (chosen, tied) = break_tie(("drag", 0.1), &[rival("bending", 0.9, 0.01)], 0.0);
         assert_eq!((chosen.as_str(), tied.len()), ("drag", 1));
         // Two tied rivals: the larger signature wins, a clearly beaten one is left out.
         let (chosen, tied) = break_tie(
@@ -290,12 +307,24 @@ mod tests {
                 rival("friction", 0.95, 0.03),
                 rival("plasticity", 0.7, 0.0),
             ],
+            0.0,
         );
         assert_eq!(chosen, "plasticity");
         assert_eq!(tied, ["drag", "bending", "plasticity"]);
         // A tie where the best also has the best signature keeps the best.
-        let (chosen, _) = break_tie(("drag", 0.8), &[rival("bending", 0.5, -0.1)]);
+        let (chosen, _) = break_tie(("drag", 0.8), &[rival("bending", 0.5, -0.1)], 0.0);
         assert_eq!(chosen, "drag");
+        // A floor on the rival's cosine: below it the best stays though tied; the tied list
+        // is the same either way.
+        let weak = [rival("plasticity", 0.107, -0.05)];
+        let (chosen, tied) = break_tie(("grasp-slip", 0.066), &weak, 0.2);
+        assert_eq!(chosen, "grasp-slip");
+        assert_eq!(tied, ["grasp-slip", "plasticity"]);
+        assert_eq!(break_tie(("grasp-slip", 0.066), &weak, 0.0).0, "plasticity");
+        assert_eq!(
+            break_tie(("grasp-slip", 0.066), &weak, 0.107).0,
+            "plasticity"
+        );
     }
 
     #[test]

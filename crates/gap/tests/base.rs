@@ -234,3 +234,82 @@ fn a_control_that_keeps_its_start_is_no_worse_on_training_than_the_model_as_give
     assert_eq!(fitted, start);
     assert_eq!(on.control.heldout_mde_cm, on.backbone_as_given.mde_cm);
 }
+
+#[test]
+fn a_held_base_effect_keeps_its_value_in_every_refit() {
+    let (train, val) = (scenes(dataset::Split::Train), scenes(dataset::Split::Val));
+    let start = BaseEffect::parse("bending=0.05").unwrap();
+    let cfg = DiagnoseConfig {
+        hold_base: true,
+        ..tiny(vec![start.clone()])
+    };
+    let d = gap::diagnose(&train, &val, &backbone(), &cfg, &mut |_| {}).unwrap();
+    // The control and the drag refit name the bending stiffness at its given value.
+    assert_eq!(d.control.fitted.len(), 4);
+    assert_eq!(
+        d.control.fitted[3],
+        ("bending_relative_stiffness".into(), 0.05)
+    );
+    assert_eq!(d.control.base, vec![start.clone()]);
+    let drag = &d.ranking[0];
+    assert_eq!(drag.effect, "drag");
+    assert_eq!(drag.fitted.len(), 5);
+    assert_eq!(drag.fitted[3], ("bending_relative_stiffness".into(), 0.05));
+    assert_eq!(drag.fitted[4].0, "drag_kg_per_m");
+    // The held family searches the backbone's three values and drag's only ...
+    let frame = gap::material_frame(&train).unwrap();
+    let held = CandidateFamily::with_base(
+        backbone(),
+        std::slice::from_ref(&start),
+        Some(Candidate::Drag),
+        frame.clone(),
+    )
+    .unwrap()
+    .with_base_held(true)
+    .unwrap();
+    assert_eq!(held.parameters().params().len(), 4);
+    assert_eq!(held.x0().len(), 4);
+    // ... and builds the model the refitting family builds with bending at 0.05.
+    let free = CandidateFamily::with_base(
+        backbone(),
+        std::slice::from_ref(&start),
+        Some(Candidate::Drag),
+        frame.clone(),
+    )
+    .unwrap();
+    let drag_values: Vec<f64> = drag.fitted.iter().map(|(_, v)| *v).collect();
+    let held_real: Vec<f64> = [&drag_values[..3], &drag_values[4..]].concat();
+    assert_eq!(
+        mde_cm(&held, &held_real, &val).to_bits(),
+        mde_cm(&free, &drag_values, &val).to_bits()
+    );
+    assert_eq!(held.named_values(&held_real), drag.fitted);
+    // Switching the hold off again restores the refitting family.
+    let back = held.with_base_held(false).unwrap();
+    assert_eq!(back.parameters().params().len(), 5);
+    assert_eq!(back.x0(), free.x0());
+    // The refitted models read back as from any other report, the held value in place.
+    let (params, base) = d.refitted_model(&backbone(), None).unwrap();
+    assert_eq!(base, vec![start]);
+    let again = gap::evaluate(&frame, &val, &params, &base).unwrap();
+    assert_eq!(again.mde_cm.to_bits(), d.control.heldout_mde_cm.to_bits());
+    // Without the hold the same diagnosis moves the bending stiffness.
+    let moved = gap::diagnose(
+        &train,
+        &val,
+        &backbone(),
+        &tiny(d.config.base.clone()),
+        &mut |_| {},
+    )
+    .unwrap();
+    assert_ne!(moved.control.fitted[3].1, 0.05);
+    assert_eq!(
+        serde_json::to_value(&d).unwrap()["config"]["hold_base"],
+        true
+    );
+    assert!(
+        serde_json::to_value(&moved).unwrap()["config"]
+            .get("hold_base")
+            .is_none()
+    );
+}

@@ -251,6 +251,12 @@ pub struct DiagnoseBenchArgs {
     /// `diagnose --drop-start`; the bench's rule before session 95).
     #[arg(long)]
     pub drop_start: bool,
+    /// The cases' diagnoses (second rounds included) hold the object's base effects at the
+    /// values its base search fitted, refitting only the backbone's stiffness, damping and
+    /// friction and each candidate (as `diagnose --hold-base`); the base searches refit them
+    /// as by default.
+    #[arg(long)]
+    pub hold_base: bool,
     /// Where generated datasets and reports go.
     #[arg(long, default_value = "target/diagnose-bench")]
     pub work: PathBuf,
@@ -367,6 +373,7 @@ fn case_config(base: &[BaseEffect], args: &DiagnoseBenchArgs, case: bool) -> Dia
         rescore_scenes: args.rescore_scenes,
         keep_start: !args.drop_start,
         base: base.to_vec(),
+        hold_base: case && args.hold_base,
         rule: gap::VerdictRule {
             min_shrinkage: args.min_shrinkage,
             ..gap::VerdictRule::default()
