@@ -125,6 +125,11 @@ pub struct DiagnoseArgs {
     /// besides an interval above 0 to count as significant (`gap::VerdictRule`).
     #[arg(long, default_value_t = gap::VerdictRule::default().min_shrinkage)]
     pub min_shrinkage: f64,
+    /// Least signature cosine with which a tied candidate overrules the one with the largest
+    /// shrinkage (`gap::VerdictRule::tie_break_min_cosine`; 0: any larger cosine, the rule
+    /// before session 97).
+    #[arg(long, default_value_t = gap::VerdictRule::default().tie_break_min_cosine)]
+    pub tie_break_min_cosine: f64,
     /// Ignore `<run>/residual.safetensors` (by default a trained network there is scored on
     /// the held-out episodes: how much of the gap is learnable, and `unknown` when it beats
     /// every library model).
@@ -211,6 +216,7 @@ fn config_from(args: &DiagnoseArgs, run_effects: &[BaseEffect]) -> anyhow::Resul
         rule: gap::VerdictRule {
             signature_tie_break: !args.no_tie_break,
             min_shrinkage: args.min_shrinkage,
+            tie_break_min_cosine: args.tie_break_min_cosine,
             ..gap::VerdictRule::default()
         },
         ..DiagnoseConfig::default()

@@ -94,10 +94,12 @@ pub struct VerdictRule {
     #[serde(default)]
     pub signature_tie_break: bool,
     /// Least signature cosine a tied rival needs to be chosen over the candidate with the
-    /// largest shrinkage ([`break_tie`]); 0 (the default, and every rule saved before the
-    /// field existed): any larger cosine. A cosine of 0.1 says the effect's change of the
-    /// prediction explains 1 % of the residual's variance, too little to overrule the
-    /// held-out error.
+    /// largest shrinkage ([`break_tie`]). Default 0.2 since session 97: a cosine of 0.1 says
+    /// the effect's change of the prediction explains 1 % of the residual's variance, too
+    /// little to overrule the held-out error, and on the bench such picks named plasticity for
+    /// the rope's grasp slip (`docs/gap-log.md`, "Holding the base effects, and a floor for
+    /// the tie-break"). Rules saved before the field existed read back as 0 (any larger
+    /// cosine), as they were judged.
     #[serde(default)]
     pub tie_break_min_cosine: f64,
 }
@@ -128,7 +130,7 @@ impl Default for VerdictRule {
             min_shrinkage: 0.10,
             probe_margin: 0.10,
             signature_tie_break: true,
-            tie_break_min_cosine: 0.0,
+            tie_break_min_cosine: 0.2,
         }
     }
 }

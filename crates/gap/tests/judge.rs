@@ -267,3 +267,40 @@ fn the_library_verdict_names_what_the_probe_outdid() {
     assert_eq!(weak.rejudge(weak.config.rule).unwrap().verdict, "unknown");
     assert_eq!(weak.library_verdict().unwrap(), "none");
 }
+
+/// A real tie broken by a signature that explains almost nothing of the residual (the rope's
+/// grasp slip of seed 57: cosines 0.107 for plasticity against 0.066): the rule it was judged
+/// with (no floor) names plasticity, the default floor keeps the largest shrinkage.
+#[test]
+fn a_weak_signature_does_not_overrule_the_held_out_error() {
+    let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data");
+    let text = std::fs::read_to_string(format!("{dir}/rope-grasp-slip-x64-seed57.json")).unwrap();
+    let d: gap::Diagnosis = serde_json::from_str(&text).unwrap();
+    assert_eq!(d.verdict, "plasticity");
+    assert_eq!(
+        d.config.rule.tie_break_min_cosine, 0.0,
+        "saved before the field"
+    );
+    let own = d.rejudge(d.config.rule).unwrap();
+    assert_eq!(own.verdict, "plasticity");
+    assert_eq!(own.tie_break, d.tie_break);
+    let floored = d
+        .rejudge(VerdictRule {
+            tie_break_min_cosine: VerdictRule::default().tie_break_min_cosine,
+            ..d.config.rule
+        })
+        .unwrap();
+    assert_eq!(floored.verdict, "grasp-slip");
+    let tb = floored.tie_break.unwrap();
+    assert_eq!(tb.tied, ["grasp-slip", "plasticity"]);
+    assert_eq!(
+        (tb.by_shrinkage.as_str(), tb.chosen.as_str()),
+        ("grasp-slip", "grasp-slip")
+    );
+    // Out of range is an error, not a verdict.
+    let bad = VerdictRule {
+        tie_break_min_cosine: 1.5,
+        ..d.config.rule
+    };
+    assert!(d.rejudge(bad).is_err());
+}

@@ -247,6 +247,10 @@ pub struct DiagnoseBenchArgs {
     /// included (as `diagnose --min-shrinkage`).
     #[arg(long, default_value_t = gap::VerdictRule::default().min_shrinkage)]
     pub min_shrinkage: f64,
+    /// The verdict rule's least signature cosine for the tie-break in every diagnosis (as
+    /// `diagnose --tie-break-min-cosine`; 0 before session 97).
+    #[arg(long, default_value_t = gap::VerdictRule::default().tie_break_min_cosine)]
+    pub tie_break_min_cosine: f64,
     /// Every diagnosis scores only the optimiser's points in each refit's final rescoring (as
     /// `diagnose --drop-start`; the bench's rule before session 95).
     #[arg(long)]
@@ -376,6 +380,7 @@ fn case_config(base: &[BaseEffect], args: &DiagnoseBenchArgs, case: bool) -> Dia
         hold_base: case && args.hold_base,
         rule: gap::VerdictRule {
             min_shrinkage: args.min_shrinkage,
+            tie_break_min_cosine: args.tie_break_min_cosine,
             ..gap::VerdictRule::default()
         },
         ..DiagnoseConfig::default()
