@@ -121,6 +121,10 @@ pub struct DiagnoseArgs {
     /// refitted with them).
     #[arg(long)]
     pub hold_base: bool,
+    /// Hold the base effects at their values in the probe's refit only
+    /// (`gap::DiagnoseConfig::probe_hold_base`).
+    #[arg(long)]
+    pub probe_hold_base: bool,
     /// Least held-out shrinkage (fraction) a candidate, and the effect inside it, must reach
     /// besides an interval above 0 to count as significant (`gap::VerdictRule`).
     #[arg(long, default_value_t = gap::VerdictRule::default().min_shrinkage)]
@@ -213,6 +217,7 @@ fn config_from(args: &DiagnoseArgs, run_effects: &[BaseEffect]) -> anyhow::Resul
         probe: !args.no_probe,
         keep_start: !args.drop_start,
         hold_base: args.hold_base,
+        probe_hold_base: args.probe_hold_base,
         rule: gap::VerdictRule {
             signature_tie_break: !args.no_tie_break,
             min_shrinkage: args.min_shrinkage,

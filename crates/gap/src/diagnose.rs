@@ -47,6 +47,13 @@ pub struct DiagnoseConfig {
     /// every report written before it existed).
     #[serde(default, skip_serializing_if = "is_false")]
     pub hold_base: bool,
+    /// Hold the base effects at their values in the probe's refit only (its two starts and
+    /// its effect-off twin), the control and the library candidates refitting them as usual:
+    /// the probe searches eleven parameters, and every base effect's values it must search
+    /// too spread its short refit thinner. Off by default (and in every report written before
+    /// it existed).
+    #[serde(default, skip_serializing_if = "is_false")]
+    pub probe_hold_base: bool,
     /// Also fit the generic external-field probe (needed for `unknown`).
     pub probe: bool,
     /// Training scenes used for the residual signatures.
@@ -149,6 +156,7 @@ impl Default for DiagnoseConfig {
             candidates: Candidate::LIBRARY.to_vec(),
             base: Vec::new(),
             hold_base: false,
+            probe_hold_base: false,
             probe: true,
             signature_scenes: 4,
             rescore: 3,
@@ -643,7 +651,10 @@ pub fn diagnose(
         |cand: Option<Candidate>, frame: &MaterialFrame| -> Result<CandidateFamily, GapError> {
             Ok(
                 CandidateFamily::with_base(*base, &config.base, cand, frame.clone())?
-                    .with_base_held(config.hold_base)?
+                    .with_base_held(
+                        config.hold_base
+                            || (config.probe_hold_base && cand == Some(Candidate::ExternalField)),
+                    )?
                     .with_field(field.clone()),
             )
         };

@@ -313,3 +313,31 @@ fn a_held_base_effect_keeps_its_value_in_every_refit() {
             .is_none()
     );
 }
+
+#[test]
+fn the_probe_alone_can_hold_the_base_effects() {
+    let (train, val) = (scenes(dataset::Split::Train), scenes(dataset::Split::Val));
+    let start = BaseEffect::parse("bending=0.05").unwrap();
+    let cfg = DiagnoseConfig {
+        probe: true,
+        probe_factor: 1,
+        probe_hold_base: true,
+        candidates: vec![Candidate::Drag],
+        ..tiny(vec![start.clone()])
+    };
+    let d = gap::diagnose(&train, &val, &backbone(), &cfg, &mut |_| {}).unwrap();
+    // The control and the library candidate refit the bending stiffness ...
+    assert_ne!(d.control.fitted[3].1, 0.05);
+    assert_ne!(d.ranking[0].fitted[3].1, 0.05);
+    // ... the probe keeps it, and its fitted list still names it in its place.
+    let probe = d.probe.as_ref().unwrap();
+    assert_eq!(probe.fitted[3], ("bending_relative_stiffness".into(), 0.05));
+    assert_eq!(
+        probe.fitted.len(),
+        4 + Candidate::ExternalField.parameters().len()
+    );
+    assert_eq!(
+        serde_json::to_value(&d).unwrap()["config"]["probe_hold_base"],
+        true
+    );
+}

@@ -261,6 +261,10 @@ pub struct DiagnoseBenchArgs {
     /// as by default.
     #[arg(long)]
     pub hold_base: bool,
+    /// The cases' diagnoses hold the base effects in the probe's refit only (as `diagnose
+    /// --probe-hold-base`).
+    #[arg(long)]
+    pub probe_hold_base: bool,
     /// Where generated datasets and reports go.
     #[arg(long, default_value = "target/diagnose-bench")]
     pub work: PathBuf,
@@ -378,6 +382,7 @@ fn case_config(base: &[BaseEffect], args: &DiagnoseBenchArgs, case: bool) -> Dia
         keep_start: !args.drop_start,
         base: base.to_vec(),
         hold_base: case && args.hold_base,
+        probe_hold_base: case && args.probe_hold_base,
         rule: gap::VerdictRule {
             min_shrinkage: args.min_shrinkage,
             tie_break_min_cosine: args.tie_break_min_cosine,
