@@ -486,11 +486,6 @@ impl CandidateFamily {
         Ok(self)
     }
 
-    /// Whether the base effects are held at their values ([`CandidateFamily::with_base_held`]).
-    pub fn base_held(&self) -> bool {
-        self.base_held
-    }
-
     /// The same family with every model's stiffness multiplied by a refined per-particle field
     /// (`springs::StiffnessField`, log factors of the tracked particles, from
     /// `fit::refine_stiffness`), held at its values: the refits move the global stiffness it
@@ -533,13 +528,8 @@ impl CandidateFamily {
     /// in their places (the layout of a family that refits them, which
     /// `Diagnosis::refitted_model` reads).
     pub fn named_values(&self, real: &[f64]) -> Vec<(String, f64)> {
-        let names: Vec<String> = self
-            .parameters
-            .params()
-            .iter()
-            .map(|p| p.name.clone())
-            .collect();
-        let mut out: Vec<(String, f64)> = names.iter().cloned().zip(real.iter().copied()).collect();
+        let names = self.parameters.params().iter().map(|p| p.name.clone());
+        let mut out: Vec<(String, f64)> = names.zip(real.iter().copied()).collect();
         if self.base_held {
             let held = self.base_effects.iter().flat_map(|b| {
                 let names = b.effect.parameters().into_iter().map(|p| p.name);

@@ -332,10 +332,6 @@ pub struct Diagnosis {
     pub wall_s: f64,
 }
 
-fn fitted_names(family: &CandidateFamily, real: &[f64]) -> Vec<(String, f64)> {
-    family.named_values(real)
-}
-
 /// One refit of the diagnosis.
 pub(crate) struct Model {
     pub(crate) family: CandidateFamily,
@@ -698,7 +694,7 @@ pub fn diagnose(
     let control_preds = predictions(&control.family, &control.real, val);
     let control_h = score(val, &control_preds, None, false)?;
     let control_fit = ControlFit {
-        fitted: fitted_names(&control.family, &control.real),
+        fitted: control.family.named_values(&control.real),
         base: control.family.base_effects_at(&control.real),
         heldout_mde_cm: control_h.mde_cm,
         train_loss_m2: control.train_loss,
@@ -831,7 +827,7 @@ pub fn diagnose(
                 sig_scenes,
                 &sig_plain,
             ),
-            fitted: fitted_names(&model.family, &model.real),
+            fitted: model.family.named_values(&model.real),
             train_loss_m2: model.train_loss,
             refit_wall_s: model.wall_s,
             heldout_mde_per_episode_cm: h.per_episode_mde_cm.clone(),
