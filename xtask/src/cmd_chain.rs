@@ -32,7 +32,8 @@ use crate::report::write_json;
         "With the verdict `unknown`, the round adds the effect the library's refits name on \
          their own (a significant candidate the probe outdid) and the chain goes on"
     )),
-    mut_arg("estimate", |a| a.hide(true))
+    mut_arg("estimate", |a| a.hide(true)),
+    mut_arg("write_runner_up", |a| a.hide(true))
 )]
 pub struct ChainArgs {
     #[command(flatten)]
@@ -41,6 +42,15 @@ pub struct ChainArgs {
     /// on from its last round when run again with a larger one.
     #[arg(long, default_value_t = 4)]
     pub max_rounds: usize,
+    /// Follow a tie too: at the first round whose added effect was tied with another
+    /// significant candidate (held-out error could not separate them), a second branch adds
+    /// that runner-up instead (`diagnose --write-runner-up`) and goes on as the chain does
+    /// (without branching again, within the same `--max-rounds`); the branch whose final model
+    /// scores lower on the val split is the chain's final model (`<out>/branch/round-<k>/`;
+    /// `branch` in `chain.json`). Give it from a chain's first run: a chain resumes only with
+    /// the settings it started with.
+    #[arg(long)]
+    pub branch_ties: bool,
 }
 
 /// `<out>/chain.json`: what each round did, written after every round, so an interrupted
@@ -61,6 +71,41 @@ pub struct ChainFile {
     pub final_run: Option<String>,
     /// The model as given and the final model on the `test` split, when the dataset has one.
     pub test: Option<TestScores>,
+    /// With `--branch-ties`, the branch that took a tie's runner-up (absent without a tie).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub branch: Option<ChainBranch>,
+}
+
+/// The second branch of a `--branch-ties` chain.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ChainBranch {
+    /// The main chain's round whose tie it follows.
+    pub fork_round: usize,
+    /// The runner-up it added there instead of that round's effect.
+    pub added: String,
+    /// The model with it, as that round's diagnosis refitted it.
+    pub start_run: String,
+    /// That model (`spring-mass+bending`, …).
+    pub model_start: String,
+    /// Its held-out MDE there, cm.
+    pub heldout_mde_start_cm: f64,
+    /// Its rounds after the fork, numbered on from `fork_round`.
+    pub rounds: Vec<ChainRound>,
+    /// Why it stopped (absent while it can go on).
+    pub stopped: Option<String>,
+    /// Whether its final model is the chain's (it scored lower on the val split).
+    pub chosen: bool,
+}
+
+impl ChainBranch {
+    /// The branch's final model and its held-out MDE, cm.
+    fn last(&self) -> (&str, f64) {
+        self.rounds
+            .last()
+            .map_or((self.start_run.as_str(), self.heldout_mde_start_cm), |r| {
+                (r.written_run.as_str(), r.heldout_mde_written_cm)
+            })
+    }
 }
 
 /// One round of a chain.
@@ -96,6 +141,21 @@ pub struct ChainRound {
     pub budget_options: String,
     /// Wall time of the round, s.
     pub wall_s: f64,
+    /// With `--branch-ties`: the tied candidate the round did not add, written as a model of
+    /// its own (absent without a tie, and after the chain's first tie).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub runner_up: Option<RunnerUp>,
+}
+
+/// A tie's runner-up, written by a round (`diagnose --write-runner-up`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct RunnerUp {
+    /// The candidate.
+    pub effect: String,
+    /// The run holding the model with it.
+    pub run: String,
+    /// That model's held-out MDE, cm.
+    pub heldout_mde_cm: f64,
 }
 
 /// The chain's start and end models on the `test` split (scored once, after the rounds).
@@ -119,6 +179,10 @@ pub fn run(args: &ChainArgs) -> anyhow::Result<ChainFile> {
         "chain runs diagnoses; use `diagnose --estimate` to estimate one"
     );
     anyhow::ensure!(args.max_rounds >= 1, "--max-rounds must be at least 1");
+    anyhow::ensure!(
+        d.write_runner_up.is_none(),
+        "a chain writes each round's models itself; --branch-ties follows a tie's runner-up"
+    );
     let out = d
         .out
         .as_deref()
@@ -133,7 +197,7 @@ pub fn run(args: &ChainArgs) -> anyhow::Result<ChainFile> {
     }
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     let path = out.join("chain.json");
-    let settings = settings_of(d);
+    let settings = settings_of(d, args.branch_ties);
     let mut chain = if path.exists() {
         let text = std::fs::read_to_string(&path)
             .with_context(|| format!("reading {}", path.display()))?;
@@ -164,13 +228,20 @@ pub fn run(args: &ChainArgs) -> anyhow::Result<ChainFile> {
             stopped: None,
             final_run: None,
             test: None,
+            branch: None,
         }
     };
     while chain.rounds.len() < args.max_rounds
         && chain.rounds.last().is_none_or(|r| r.added.is_some())
     {
         let k = chain.rounds.len() + 1;
-        let round = run_round(d, out, k, chain.rounds.last(), args.max_rounds)?;
+        let diagnosed = chain
+            .rounds
+            .last()
+            .map_or_else(|| d.run.clone(), |r| PathBuf::from(&r.written_run));
+        // Only the chain's first tie forks a branch.
+        let runner_up = args.branch_ties && chain.rounds.iter().all(|r| r.runner_up.is_none());
+        let round = run_round(d, out, k, &diagnosed, runner_up, args.max_rounds)?;
         chain.rounds.push(round);
         chain.stopped = None;
         chain.final_run = chain.rounds.last().map(|r| r.written_run.clone());
@@ -178,19 +249,45 @@ pub fn run(args: &ChainArgs) -> anyhow::Result<ChainFile> {
         write_json(&path, &chain)?;
     }
     let last = chain.rounds.last().context("the chain ran no round")?;
-    chain.stopped = Some(if let Some(added) = &last.added {
-        format!(
-            "round limit {}: round {} still added {added}; run the chain again with a larger \
-             --max-rounds to go on",
-            args.max_rounds, last.round
-        )
-    } else {
-        format!(
-            "round {}: verdict {}, no effect left to add",
-            last.round, last.verdict
-        )
-    });
-    let final_run = PathBuf::from(&last.written_run);
+    chain.stopped = Some(stop_reason(last, args.max_rounds));
+    let mut final_run = PathBuf::from(&last.written_run);
+    let main_final_cm = last.heldout_mde_written_cm;
+    let fork = chain
+        .rounds
+        .iter()
+        .find_map(|r| r.runner_up.clone().map(|u| (r.round, u)));
+    if let Some((fork_round, up)) = fork {
+        let mut branch = match chain.branch.take() {
+            Some(b) => b,
+            None => ChainBranch {
+                fork_round,
+                model_start: read_backbone(Path::new(&up.run))?.label(),
+                added: up.effect,
+                start_run: up.run,
+                heldout_mde_start_cm: up.heldout_mde_cm,
+                rounds: Vec::new(),
+                stopped: None,
+                chosen: false,
+            },
+        };
+        let dir = out.join("branch");
+        let chosen = follow_branch(
+            &mut branch,
+            args.max_rounds,
+            main_final_cm,
+            |k, diagnosed| run_round(d, &dir, k, diagnosed, false, args.max_rounds),
+            |branch| {
+                chain.branch = Some(branch.clone());
+                chain.test = None;
+                write_json(&path, &chain)
+            },
+        )?;
+        if chosen {
+            final_run = PathBuf::from(branch.last().0);
+        }
+        chain.branch = Some(branch);
+    }
+    chain.final_run = Some(final_run.display().to_string());
     if let Some(dir) = &d.write_run {
         let file = read_backbone(&final_run)?;
         cmd_diagnose::check_write_run(dir, &d.run)?;
@@ -203,29 +300,79 @@ pub fn run(args: &ChainArgs) -> anyhow::Result<ChainFile> {
     Ok(chain)
 }
 
-/// The diagnosis settings a chain must resume with: every argument but the output paths and
-/// the printing.
-fn settings_of(d: &DiagnoseArgs) -> String {
+/// The settings a chain must resume with: every diagnosis argument but the output paths and
+/// the printing, and `--branch-ties` (named only when given, so chains recorded before it
+/// resume as they were).
+fn settings_of(d: &DiagnoseArgs, branch_ties: bool) -> String {
     let mut s = d.clone();
     s.out = None;
     s.write_run = None;
     s.quiet = false;
-    format!("{s:?}")
+    let ties = if branch_ties { " --branch-ties" } else { "" };
+    format!("{s:?}{ties}")
 }
 
-/// Diagnoses round `k`'s model (the run given, or the model the round before wrote) and
-/// writes the model it refitted to `<out>/round-<k>/run`.
+/// Runs a branch's rounds (`next_round(k, model)` diagnoses round k's model) until one adds
+/// no effect or `max_rounds` is reached, saving after each; then marks it chosen when its
+/// final model scores lower on the val split than the main chain's (`main_final_cm`; a tie
+/// keeps the main chain). A branch with rounds done resumes after them.
+fn follow_branch(
+    branch: &mut ChainBranch,
+    max_rounds: usize,
+    main_final_cm: f64,
+    mut next_round: impl FnMut(usize, &Path) -> anyhow::Result<ChainRound>,
+    mut save: impl FnMut(&ChainBranch) -> anyhow::Result<()>,
+) -> anyhow::Result<bool> {
+    while branch.fork_round + branch.rounds.len() < max_rounds
+        && branch.rounds.last().is_none_or(|r| r.added.is_some())
+    {
+        let k = branch.fork_round + branch.rounds.len() + 1;
+        let round = next_round(k, Path::new(branch.last().0))?;
+        branch.rounds.push(round);
+        branch.stopped = None;
+        branch.chosen = false;
+        save(branch)?;
+    }
+    branch.stopped = Some(match branch.rounds.last() {
+        Some(r) => stop_reason(r, max_rounds),
+        None => format!("round limit {max_rounds}: the fork was the last round"),
+    });
+    // Both branches' held-out MDEs are on the same val split.
+    branch.chosen = branch.last().1 < main_final_cm;
+    Ok(branch.chosen)
+}
+
+/// Why a chain (or its branch) whose last round is `last` stops.
+fn stop_reason(last: &ChainRound, max_rounds: usize) -> String {
+    if let Some(added) = &last.added {
+        format!(
+            "round limit {max_rounds}: round {} still added {added}; run the chain again with a \
+             larger --max-rounds to go on",
+            last.round
+        )
+    } else {
+        format!(
+            "round {}: verdict {}, no effect left to add",
+            last.round, last.verdict
+        )
+    }
+}
+
+/// Diagnoses round `k`'s model (`diagnosed`: the run given, or the model the round before
+/// wrote) and writes the model it refitted to `<out>/round-<k>/run`; with `runner_up`, a tie's
+/// runner-up also to `<out>/round-<k>/run-runner-up`.
 fn run_round(
     d: &DiagnoseArgs,
     out: &Path,
     k: usize,
-    before: Option<&ChainRound>,
+    diagnosed: &Path,
+    runner_up: bool,
     max_rounds: usize,
 ) -> anyhow::Result<ChainRound> {
     let dir = out.join(format!("round-{k}"));
     let written = dir.join("run");
-    let diagnosed = before.map_or_else(|| d.run.clone(), |r| PathBuf::from(&r.written_run));
-    let given = read_backbone(&diagnosed)?;
+    let runner_up_run = dir.join("run-runner-up");
+    let given = read_backbone(diagnosed)?;
     if !d.quiet {
         println!(
             "== chain round {k} (at most {max_rounds}): diagnosing {} ({})",
@@ -234,9 +381,10 @@ fn run_round(
         );
     }
     let round_args = DiagnoseArgs {
-        run: diagnosed.clone(),
+        run: diagnosed.to_path_buf(),
         out: Some(dir.clone()),
         write_run: Some(written.clone()),
+        write_runner_up: runner_up.then(|| runner_up_run.clone()),
         // The first round's base effects as the user named them; later rounds take the
         // model the round before wrote, effects and all.
         with: if k == 1 { d.with.clone() } else { None },
@@ -244,15 +392,27 @@ fn run_round(
     };
     let diagnosis = cmd_diagnose::run(&round_args)?;
     let model_written = read_backbone(&written)?.label();
-    round_record(
+    let mut round = round_record(
         k,
         &diagnosis,
         d.add_past_unknown,
-        &diagnosed,
+        diagnosed,
         given.label(),
         &written,
         model_written,
-    )
+    )?;
+    if runner_up
+        && let Some(added) = cmd_diagnose::effect_to_add(&diagnosis, d.add_past_unknown)?
+        && let Some(other) = cmd_diagnose::runner_up(&diagnosis, added)
+    {
+        let entry = diagnosis.ranking.iter().find(|r| r.effect == other.name());
+        round.runner_up = Some(RunnerUp {
+            effect: other.name().to_string(),
+            run: runner_up_run.display().to_string(),
+            heldout_mde_cm: entry.map_or(f64::NAN, |r| r.heldout_mde_after_cm),
+        });
+    }
+    Ok(round)
 }
 
 /// What a round did, from its diagnosis.
@@ -299,6 +459,7 @@ fn round_record(
         model_written,
         budget_options: (diagnosis.budget.as_ref()).map_or(String::new(), |b| b.options.clone()),
         wall_s: diagnosis.wall_s,
+        runner_up: None,
     })
 }
 
@@ -341,12 +502,12 @@ fn test_scores(
     }))
 }
 
-fn print_summary(chain: &ChainFile, d: &DiagnoseArgs) {
-    println!("chain of diagnoses on {} from {}:", chain.data, chain.run);
+/// One line per round.
+fn print_rounds(rounds: &[ChainRound]) {
     println!(
         "  round  verdict                    shrinkage [95 %]        held-out MDE, cm: as given -> written  wrote                       time"
     );
-    for r in &chain.rounds {
+    for r in rounds {
         let verdict = match &r.added {
             Some(a) if *a != r.verdict => format!("{} (added {a})", r.verdict),
             _ => r.verdict.clone(),
@@ -373,24 +534,64 @@ fn print_summary(chain: &ChainFile, d: &DiagnoseArgs) {
             }
         );
     }
+}
+
+fn print_summary(chain: &ChainFile, d: &DiagnoseArgs) {
+    println!("chain of diagnoses on {} from {}:", chain.data, chain.run);
+    print_rounds(&chain.rounds);
     if let Some(stopped) = &chain.stopped {
         println!("  stopped at {stopped}");
     }
-    if let (Some(last), Some(first)) = (chain.rounds.last(), chain.rounds.first()) {
+    let (Some(first), Some(last)) = (chain.rounds.first(), chain.rounds.last()) else {
+        return;
+    };
+    let (mut model, mut run, mut mde) = (
+        last.model_written.as_str(),
+        last.written_run.as_str(),
+        last.heldout_mde_written_cm,
+    );
+    if let Some(b) = &chain.branch {
+        let took = chain
+            .rounds
+            .iter()
+            .find(|r| r.round == b.fork_round)
+            .and_then(|r| r.added.as_deref())
+            .unwrap_or("-");
         println!(
-            "  final model {} in {}{}",
-            last.model_written,
-            last.written_run,
-            d.write_run.as_ref().map_or(String::new(), |w| format!(
-                " (also written to {})",
-                w.display()
-            ))
+            "  branch from round {}: {} instead of {took} (tied there), held-out {:.3} cm",
+            b.fork_round, b.added, b.heldout_mde_start_cm
         );
+        print_rounds(&b.rounds);
+        if let Some(stopped) = &b.stopped {
+            println!("  the branch stopped at {stopped}");
+        }
+        let (branch_run, branch_mde) = b.last();
         println!(
-            "  held-out (the val split, which every round chose on): {:.3} cm as given -> {:.3} cm final",
-            first.heldout_mde_as_given_cm, last.heldout_mde_written_cm
+            "  final model from the {}: held-out {:.3} cm (main chain) against {:.3} cm (branch)",
+            if b.chosen { "branch" } else { "main chain" },
+            last.heldout_mde_written_cm,
+            branch_mde
         );
+        if b.chosen {
+            run = branch_run;
+            mde = branch_mde;
+            model = b
+                .rounds
+                .last()
+                .map_or(b.model_start.as_str(), |r| &r.model_written);
+        }
     }
+    println!(
+        "  final model {model} in {run}{}",
+        d.write_run.as_ref().map_or(String::new(), |w| format!(
+            " (also written to {})",
+            w.display()
+        ))
+    );
+    println!(
+        "  held-out (the val split, which every round chose on): {:.3} cm as given -> {mde:.3} cm final",
+        first.heldout_mde_as_given_cm
+    );
     match &chain.test {
         Some(t) => println!(
             "  test split ({} episodes, scored once): {:.3} cm as given -> {:.3} cm final ({:.1} % lower)",
@@ -608,6 +809,26 @@ mod tests {
                 .contains("other data, run or diagnosis settings"),
             "{err}"
         );
+        let err = run(&chain_args(&dir, "whole", &["--branch-ties"])).unwrap_err();
+        assert!(err.to_string().contains("other data"), "{err}");
+
+        // With `--branch-ties` the main chain is the same; a branch only where a round tied.
+        let ties = run(&chain_args(&dir, "ties", &["--branch-ties"])).unwrap();
+        for (a, b) in ties.rounds.iter().zip(&whole.rounds) {
+            assert_eq!(a.verdict, b.verdict);
+            assert_eq!(a.heldout_mde_written_cm, b.heldout_mde_written_cm);
+        }
+        let fork = ties.rounds.iter().find(|r| r.runner_up.is_some());
+        assert_eq!(
+            fork.map(|r| r.round),
+            ties.branch.as_ref().map(|b| b.fork_round)
+        );
+        if ties.branch.as_ref().is_none_or(|b| !b.chosen) {
+            assert_eq!(
+                ties.final_run,
+                whole.final_run.map(|r| r.replace("whole", "ties"))
+            );
+        }
         std::fs::remove_dir_all(&dir).ok();
     }
 
@@ -644,5 +865,111 @@ mod tests {
         assert_eq!(stop.added, None);
         assert_eq!(stop.shrinkage, d.probe.as_ref().map(|p| p.shrinkage));
         assert!(stop.written == "control refit" || stop.written == "as given");
+    }
+
+    /// A round's tie names its runner-up: the tied candidate of largest shrinkage other than
+    /// the one added (the stored rope report: grasp slip and plasticity tied, plasticity
+    /// chosen by the signature); no runner-up for an effect outside the tie or a report
+    /// without one.
+    #[test]
+    fn the_runner_up_is_the_other_tied_candidate() {
+        let read = |name: &str| -> Diagnosis {
+            let path = format!(
+                "{}/../crates/gap/tests/data/{name}",
+                env!("CARGO_MANIFEST_DIR")
+            );
+            serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
+        };
+        let tied = read("rope-grasp-slip-x64-seed57.json");
+        let c = |n: &str| gap::Candidate::parse(n).unwrap();
+        assert_eq!(tied.verdict, "plasticity");
+        let up = |added| cmd_diagnose::runner_up(&tied, c(added)).map(|u| u.name());
+        assert_eq!(up("plasticity"), Some("grasp-slip"));
+        assert_eq!(up("grasp-slip"), Some("plasticity"));
+        assert_eq!(up("actuation-delay"), None);
+        let untied = read("paper-magnet-x4-seed0.json");
+        assert!(untied.tie_break.is_none());
+        assert_eq!(cmd_diagnose::runner_up(&untied, c("drag")), None);
+    }
+
+    /// A made-up round: adds `added` (or nothing) and writes a model scoring `mde` cm.
+    fn fake_round(k: usize, diagnosed: &Path, added: Option<&str>, mde: f64) -> ChainRound {
+        ChainRound {
+            round: k,
+            diagnosed_run: diagnosed.display().to_string(),
+            model_diagnosed: "m".into(),
+            verdict: added.unwrap_or("none").into(),
+            added: added.map(Into::into),
+            shrinkage: None,
+            ci95: None,
+            heldout_mde_as_given_cm: mde + 0.1,
+            heldout_mde_written_cm: mde,
+            written: "w".into(),
+            written_run: format!("branch/round-{k}/run"),
+            model_written: "m".into(),
+            budget_options: String::new(),
+            wall_s: 0.0,
+            runner_up: None,
+        }
+    }
+
+    fn fork_at(round: usize) -> ChainBranch {
+        ChainBranch {
+            fork_round: round,
+            added: "bending".into(),
+            start_run: "round-2/run-runner-up".into(),
+            model_start: "spring-mass+bending".into(),
+            heldout_mde_start_cm: 3.0,
+            rounds: Vec::new(),
+            stopped: None,
+            chosen: false,
+        }
+    }
+
+    /// A branch goes on from its fork's model, numbering its rounds after the fork, until a
+    /// round adds nothing or the round limit; it saves after every round, resumes after the
+    /// rounds it has, and is chosen only when it ends lower on val than the main chain.
+    #[test]
+    fn a_branch_runs_from_its_fork_and_wins_only_when_lower() {
+        // Round 3 adds drag, round 4 adds nothing (2.5 cm).
+        let script = |k: usize, model: &Path| {
+            let added = (k == 3).then_some("drag");
+            Ok(fake_round(k, model, added, if k == 3 { 2.7 } else { 2.5 }))
+        };
+        let mut saved = Vec::new();
+        let mut b = fork_at(2);
+        let chosen = follow_branch(&mut b, 9, 2.6, script, |b| {
+            saved.push(b.rounds.len());
+            Ok(())
+        })
+        .unwrap();
+        assert!(chosen && b.chosen);
+        assert_eq!(saved, [1, 2]);
+        let rounds: Vec<usize> = b.rounds.iter().map(|r| r.round).collect();
+        assert_eq!(rounds, [3, 4]);
+        assert_eq!(b.rounds[0].diagnosed_run, "round-2/run-runner-up");
+        assert_eq!(b.rounds[1].diagnosed_run, b.rounds[0].written_run);
+        assert!(b.stopped.as_deref().unwrap().contains("no effect left"));
+        assert_eq!(b.last(), ("branch/round-4/run", 2.5));
+
+        // Resumed: nothing is redone; a main chain at or below the branch keeps the final model.
+        let again = follow_branch(&mut b, 9, 2.5, |_, _| panic!("redone"), |_| Ok(())).unwrap();
+        assert!(!again && !b.chosen);
+
+        // The round limit stops it; a fork at the limit has no rounds and its start competes.
+        let mut limited = fork_at(2);
+        follow_branch(&mut limited, 3, 1.0, script, |_| Ok(())).unwrap();
+        assert_eq!(limited.rounds.len(), 1);
+        assert!(
+            limited
+                .stopped
+                .as_deref()
+                .unwrap()
+                .contains("round limit 3")
+        );
+        let mut at_limit = fork_at(2);
+        let chosen = follow_branch(&mut at_limit, 2, 3.5, script, |_| Ok(())).unwrap();
+        assert!(chosen && at_limit.rounds.is_empty());
+        assert_eq!(at_limit.last(), ("round-2/run-runner-up", 3.0));
     }
 }

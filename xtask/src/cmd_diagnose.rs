@@ -157,6 +157,13 @@ pub struct DiagnoseArgs {
     /// (`cargo xtask chain`).
     #[arg(long)]
     pub add_past_unknown: bool,
+    /// When the effect `--write-run` adds was tied with other significant candidates (held-out
+    /// error could not separate them; `tie_break` in the report), also write the model with the
+    /// tied candidate of largest shrinkage it did not add, the runner-up, to this run directory
+    /// (refitted values from this diagnosis, as `--write-run` writes them). Nothing is written
+    /// without such a tie. `cargo xtask chain --branch-ties` follows it as a second branch.
+    #[arg(long)]
+    pub write_runner_up: Option<PathBuf>,
     /// How the simulator chooses its substep in every rollout of the diagnosis (the backbone
     /// as given included): every contender is refitted and compared under it. Default: the
     /// run's own, unless `--budget-min` chooses `spectral`. `--write-run` records it in a
@@ -674,6 +681,13 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
     if let Some(dir) = &args.write_run {
         check_write_run(dir, &args.run)?;
     }
+    if let Some(dir) = &args.write_runner_up {
+        check_write_run(dir, &args.run)?;
+        anyhow::ensure!(
+            args.write_run.as_ref() != Some(dir),
+            "--write-runner-up names the --write-run directory; name another"
+        );
+    }
     let Setup {
         data,
         backbone,
@@ -789,8 +803,8 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
         );
     }
     if added.is_some() || args.write_run.is_some() {
-        let (params, effects) = d.refitted_model(&backbone.params, added)?;
         if added.is_some() {
+            let (_, effects) = d.refitted_model(&backbone.params, added)?;
             let list: Vec<String> = effects.iter().map(BaseEffect::label).collect();
             println!(
                 "to diagnose the model with it: --with {} (values refitted here)",
@@ -798,22 +812,7 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
             );
         }
         if let Some(dir) = &args.write_run {
-            let mut file = backbone.clone();
-            // No effect to add and the control refit no better on the held-out episodes than
-            // the model as given (session 59: two refined cables): carry the model on as given.
-            let as_given = added.is_none() && !control_is_better(&d);
-            if !as_given {
-                file.params = params;
-                file.effects = effects;
-            }
-            file.protocol = protocol.name().to_string();
-            if !as_given {
-                // The refits' damping suits the rule they ran under, so the run keeps it; a
-                // model carried on as given keeps its own.
-                file.substep = substep;
-            }
-            std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-            write_json(&backbone_path(dir), &file)?;
+            let file = write_model(dir, &backbone, &d, added, protocol, substep)?;
             if added.is_some() {
                 println!(
                     "wrote {} ({}, refitted here)",
@@ -824,7 +823,7 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
                 println!(
                     "verdict {}: no effect to add; wrote the {} to {} ({}; held-out MDE: control refit {:.3} cm, as given {:.3} cm)",
                     d.verdict,
-                    if as_given {
+                    if !control_is_better(&d) {
                         "model as given"
                     } else {
                         "control refit"
@@ -845,7 +844,63 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
             }
         }
     }
+    if let Some(dir) = &args.write_runner_up
+        && let Some(other) = added.and_then(|a| runner_up(&d, a))
+    {
+        let file = write_model(dir, &backbone, &d, Some(other), protocol, substep)?;
+        println!(
+            "runner-up: {} was tied with {}; wrote {} ({}, refitted here)",
+            other.name(),
+            added.map_or("", |a| a.name()),
+            backbone_path(dir).display(),
+            file.label()
+        );
+    }
     Ok(d)
+}
+
+/// Writes `<dir>/backbone.json`: the diagnosed model with `added` at the values this
+/// diagnosis refitted, or with no effect to add the better on the held-out episodes of the
+/// control refit and the model as given. Returns what it wrote.
+fn write_model(
+    dir: &Path,
+    backbone: &BackboneFile,
+    d: &Diagnosis,
+    added: Option<Candidate>,
+    protocol: Protocol,
+    substep: SubstepArg,
+) -> anyhow::Result<BackboneFile> {
+    let mut file = backbone.clone();
+    // No effect to add and the control refit no better on the held-out episodes than the
+    // model as given (session 59: two refined cables): carry the model on as given.
+    let as_given = added.is_none() && !control_is_better(d);
+    if !as_given {
+        let (params, effects) = d.refitted_model(&backbone.params, added)?;
+        file.params = params;
+        file.effects = effects;
+        // The refits' damping suits the rule they ran under, so the run keeps it; a model
+        // carried on as given keeps its own.
+        file.substep = substep;
+    }
+    file.protocol = protocol.name().to_string();
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    write_json(&backbone_path(dir), &file)?;
+    Ok(file)
+}
+
+/// The candidate tied with `added` (significant, not separable from it on the held-out
+/// episodes: the report's `tie_break`) that has the largest shrinkage among the others, if
+/// `added` was one of a tie.
+pub(crate) fn runner_up(d: &Diagnosis, added: Candidate) -> Option<Candidate> {
+    let tie = d.tie_break.as_ref()?;
+    if !tie.tied.iter().any(|t| t == added.name()) {
+        return None;
+    }
+    // The ranking runs from the largest shrinkage down.
+    d.ranking
+        .iter()
+        .filter(|r| r.effect != added.name() && tie.tied.contains(&r.effect))
+        .find_map(|r| Candidate::parse(&r.effect).ok())
 }
 
 /// The effect `--write-run` adds to the model: the verdict's, or with `add_past_unknown` the
