@@ -404,12 +404,12 @@ fn run_round(
     if runner_up
         && let Some(added) = cmd_diagnose::effect_to_add(&diagnosis, d.add_past_unknown)?
         && let Some(other) = cmd_diagnose::runner_up(&diagnosis, added)
+        && let Some(entry) = diagnosis.ranking.iter().find(|r| r.effect == other.name())
     {
-        let entry = diagnosis.ranking.iter().find(|r| r.effect == other.name());
         round.runner_up = Some(RunnerUp {
-            effect: other.name().to_string(),
+            effect: entry.effect.clone(),
             run: runner_up_run.display().to_string(),
-            heldout_mde_cm: entry.map_or(f64::NAN, |r| r.heldout_mde_after_cm),
+            heldout_mde_cm: entry.heldout_mde_after_cm,
         });
     }
     Ok(round)
