@@ -802,46 +802,44 @@ pub fn run(args: &DiagnoseArgs) -> anyhow::Result<Diagnosis> {
             ))
         );
     }
-    if added.is_some() || args.write_run.is_some() {
+    if added.is_some() {
+        let (_, effects) = d.refitted_model(&backbone.params, added)?;
+        let list: Vec<String> = effects.iter().map(BaseEffect::label).collect();
+        println!(
+            "to diagnose the model with it: --with {} (values refitted here)",
+            list.join(",")
+        );
+    }
+    if let Some(dir) = &args.write_run {
+        let file = write_model(dir, &backbone, &d, added, protocol, substep)?;
         if added.is_some() {
-            let (_, effects) = d.refitted_model(&backbone.params, added)?;
-            let list: Vec<String> = effects.iter().map(BaseEffect::label).collect();
             println!(
-                "to diagnose the model with it: --with {} (values refitted here)",
-                list.join(",")
+                "wrote {} ({}, refitted here)",
+                backbone_path(dir).display(),
+                file.label()
+            );
+        } else {
+            println!(
+                "verdict {}: no effect to add; wrote the {} to {} ({}; held-out MDE: control refit {:.3} cm, as given {:.3} cm)",
+                d.verdict,
+                if !control_is_better(&d) {
+                    "model as given"
+                } else {
+                    "control refit"
+                },
+                backbone_path(dir).display(),
+                file.label(),
+                d.control.heldout_mde_cm,
+                d.backbone_as_given.mde_cm
             );
         }
-        if let Some(dir) = &args.write_run {
-            let file = write_model(dir, &backbone, &d, added, protocol, substep)?;
-            if added.is_some() {
-                println!(
-                    "wrote {} ({}, refitted here)",
-                    backbone_path(dir).display(),
-                    file.label()
-                );
-            } else {
-                println!(
-                    "verdict {}: no effect to add; wrote the {} to {} ({}; held-out MDE: control refit {:.3} cm, as given {:.3} cm)",
-                    d.verdict,
-                    if !control_is_better(&d) {
-                        "model as given"
-                    } else {
-                        "control refit"
-                    },
-                    backbone_path(dir).display(),
-                    file.label(),
-                    d.control.heldout_mde_cm,
-                    d.backbone_as_given.mde_cm
-                );
-            }
-            if file.substep != backbone.substep {
-                println!(
-                    "note: the run is written with the {} substep rule (the run diagnosed used {}): \
-                     its parameters were refitted under it",
-                    substep.name(),
-                    backbone.substep.name()
-                );
-            }
+        if file.substep != backbone.substep {
+            println!(
+                "note: the run is written with the {} substep rule (the run diagnosed used {}): \
+                 its parameters were refitted under it",
+                substep.name(),
+                backbone.substep.name()
+            );
         }
     }
     if let Some(dir) = &args.write_runner_up
