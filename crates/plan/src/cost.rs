@@ -79,8 +79,9 @@ impl Objective {
             && workspace.max.cmpge(workspace.min).all())
         {
             return Err(PlanError::Config {
-                name: "workspace",
-                value: f64::NAN,
+                // The smallest extent shows what is wrong: negative, or not finite.
+                name: "workspace extent (smallest axis, m)",
+                value: f64::from((workspace.max - workspace.min).min_element()),
                 reason: "corners must be finite with min <= max",
             });
         }

@@ -13,6 +13,9 @@ pub enum PlanError {
         /// What is required.
         reason: &'static str,
     },
+    /// A task name that is not one of [`crate::TaskKind::ALL`].
+    #[error("unknown task `{0}` (rope-lift, rope-lower, rope-rotate, rope-curve or reroute)")]
+    UnknownTask(String),
     /// Inputs that must agree in size do not (particles, grippers, frames).
     #[error("{what}: expected {expected}, got {got}")]
     Mismatch {

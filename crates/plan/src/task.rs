@@ -91,11 +91,7 @@ impl std::str::FromStr for TaskKind {
         TaskKind::ALL
             .into_iter()
             .find(|t| t.name() == s)
-            .ok_or(PlanError::Config {
-                name: "task (rope-lift, rope-lower, rope-rotate, rope-curve or reroute)",
-                value: f64::NAN,
-                reason: "unknown task name",
-            })
+            .ok_or_else(|| PlanError::UnknownTask(s.to_string()))
     }
 }
 

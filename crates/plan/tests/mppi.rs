@@ -285,3 +285,21 @@ fn bad_inputs_are_errors() {
     assert!(ModelState::from_frames(&[], 0.1).is_err());
     assert!(ModelState::from_frames(&[vec![Vec3::ZERO], vec![]], 0.1).is_err());
 }
+
+/// A workspace whose corners are swapped or not finite is refused with its smallest extent.
+#[test]
+fn a_bad_workspace_is_a_clear_error() {
+    let swapped = Workspace {
+        min: Vec3::new(-1.0, 1.0, -1.0),
+        max: Vec3::new(1.0, 0.5, 1.0),
+    };
+    let err = Objective::new(&[Vec3::ZERO], swapped)
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("workspace") && err.contains("-0.5"), "{err}");
+    let open = Workspace {
+        min: Vec3::splat(-1.0),
+        max: Vec3::new(1.0, f32::INFINITY, 1.0),
+    };
+    assert!(Objective::new(&[Vec3::ZERO], open).is_err());
+}

@@ -31,7 +31,11 @@ fn every_task_builds_with_a_target_away_from_its_start() {
         );
         assert_eq!(kind.name().parse::<TaskKind>().unwrap(), kind);
     }
-    assert!("rope-jump".parse::<TaskKind>().is_err());
+    let err = "rope-jump".parse::<TaskKind>().unwrap_err().to_string();
+    assert!(
+        err.contains("`rope-jump`") && err.contains("reroute"),
+        "{err}"
+    );
 }
 
 #[test]
