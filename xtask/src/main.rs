@@ -24,6 +24,7 @@ mod cmd_render;
 mod cmd_screen;
 mod cmd_train;
 mod common;
+mod demo_tour;
 mod eval_horizon;
 mod report;
 mod train_choice;
@@ -38,7 +39,8 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
-    /// Fit, evaluate and plot the backbone on every bundled fixture.
+    /// Fit, evaluate and plot the backbone on every bundled fixture, then tour the rest of the
+    /// pipeline (network, rendering, diagnosis, planning) on the rope.
     Demo(cmd_demo::DemoArgs),
     /// Generate a reference-world dataset with known, switchable effects.
     Gen(cmd_gen::GenArgs),
