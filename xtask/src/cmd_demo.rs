@@ -68,8 +68,13 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
         args.fixtures.display()
     );
     println!(
-        "pgrd demo: fit the spring-mass backbone (CMA-ES, {} generations) on each fixture's train episodes, then predict its val episodes from their first frames alone.\n",
-        args.generations
+        "pgrd demo: fit the spring-mass backbone (CMA-ES, {} generations) on each fixture's train episodes, then predict its val episodes from their first frames alone.{}\n",
+        args.generations,
+        if args.no_tour {
+            ""
+        } else {
+            " Then, on the rope: a residual network, rendered frames, a gap diagnosis and a planning trial."
+        }
     );
     let mut rows = Vec::new();
     for dir in &objects {
