@@ -32,7 +32,7 @@ pub struct DemoArgs {
     #[arg(long, default_value_t = 8)]
     pub generations: usize,
     /// Fit and evaluate the backbones only, without the tour of the rest of the pipeline on
-    /// the rope (about 10 s instead of about two minutes on 2 cores).
+    /// the rope (about 5 s instead of about a minute on 2 cores).
     #[arg(long)]
     pub no_tour: bool,
     /// Training steps of the tour's residual network.
