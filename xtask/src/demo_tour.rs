@@ -34,10 +34,32 @@ impl TourPaths {
     }
 }
 
-/// One stage's command line, without the program name: what a user would type after
-/// `cargo xtask <stage>`.
+/// The commands the tour runs, in its order.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Command {
+    Train,
+    Eval,
+    Render,
+    Diagnose,
+    Plan,
+}
+
+impl Command {
+    fn name(self) -> &'static str {
+        match self {
+            Command::Train => "train",
+            Command::Eval => "eval",
+            Command::Render => "render",
+            Command::Diagnose => "diagnose",
+            Command::Plan => "plan",
+        }
+    }
+}
+
+/// One stage: its command and the command line a user would type after
+/// `cargo xtask <command>`.
 struct Stage {
-    name: &'static str,
+    command: Command,
     argv: Vec<String>,
 }
 
@@ -46,13 +68,13 @@ fn stages(p: &TourPaths, iterations: usize) -> Vec<Stage> {
     let data = p.data.display().to_string();
     let run = p.run().display().to_string();
     let out = |sub: &str| p.out.join(sub).display().to_string();
-    let stage = |name, argv: &[&str]| Stage {
-        name,
+    let stage = |command, argv: &[&str]| Stage {
+        command,
         argv: argv.iter().map(|a| a.to_string()).collect(),
     };
     vec![
         stage(
-            "train",
+            Command::Train,
             &[
                 "--data",
                 &data,
@@ -63,17 +85,17 @@ fn stages(p: &TourPaths, iterations: usize) -> Vec<Stage> {
                 "--quiet",
             ],
         ),
-        stage("eval", &["--data", &data, "--run", &run]),
+        stage(Command::Eval, &["--data", &data, "--run", &run]),
         stage(
-            "render",
+            Command::Render,
             &["--data", &data, "--run", &run, "--out", &out("render")],
         ),
         stage(
-            "diagnose",
+            Command::Diagnose,
             &["--data", &data, "--run", &run, "--out", &out("report")],
         ),
         stage(
-            "plan",
+            Command::Plan,
             &[
                 "--task",
                 "rope-lift",
@@ -96,9 +118,10 @@ struct Argv<T: clap::Args> {
 }
 
 fn parse<T: clap::Args>(stage: &Stage) -> anyhow::Result<T> {
-    let argv = std::iter::once(stage.name.to_string()).chain(stage.argv.iter().cloned());
+    let name = stage.command.name();
+    let argv = std::iter::once(name.to_string()).chain(stage.argv.iter().cloned());
     let parsed = <Argv<T> as clap::Parser>::try_parse_from(argv)
-        .with_context(|| format!("the demo's `{}` stage", stage.name))?;
+        .with_context(|| format!("the demo's `{name}` stage"))?;
     Ok(parsed.args)
 }
 
@@ -123,11 +146,15 @@ pub fn run(p: &TourPaths, iterations: usize, backbone_mde_cm: f64) -> anyhow::Re
     )
     .with_context(|| format!("copying {}/backbone.json", p.fitted.display()))?;
     for stage in stages(p, iterations) {
-        println!("\n-- cargo xtask {} {}", stage.name, stage.argv.join(" "));
+        println!(
+            "\n-- cargo xtask {} {}",
+            stage.command.name(),
+            stage.argv.join(" ")
+        );
         let t = Instant::now();
-        match stage.name {
-            "train" => cmd_train::run(&parse(&stage)?)?,
-            "eval" => {
+        match stage.command {
+            Command::Train => cmd_train::run(&parse(&stage)?)?,
+            Command::Eval => {
                 let report = cmd_eval::run(&parse(&stage)?)?;
                 let mde = report.metrics["mde_cm"]["mean"]
                     .as_f64()
@@ -138,10 +165,9 @@ pub fn run(p: &TourPaths, iterations: usize, backbone_mde_cm: f64) -> anyhow::Re
                      docs/RESULTS.md has each object's network trained on 100 episodes."
                 );
             }
-            "render" => cmd_render::run(&parse(&stage)?)?,
-            "diagnose" => drop(cmd_diagnose::run(&parse(&stage)?)?),
-            "plan" => cmd_plan::run(&parse(&stage)?)?,
-            other => anyhow::bail!("the demo has no stage {other}"),
+            Command::Render => cmd_render::run(&parse(&stage)?)?,
+            Command::Diagnose => drop(cmd_diagnose::run(&parse(&stage)?)?),
+            Command::Plan => cmd_plan::run(&parse(&stage)?)?,
         }
         println!("({:.1} s)", t.elapsed().as_secs_f64());
     }
@@ -169,27 +195,27 @@ mod tests {
             Path::new("out/demo/tour"),
         );
         let stages = stages(&p, 300);
-        let names: Vec<_> = stages.iter().map(|s| s.name).collect();
-        assert_eq!(names, ["train", "eval", "render", "diagnose", "plan"]);
+        let order: Vec<_> = stages.iter().map(|s| s.command).collect();
+        use Command::*;
+        assert_eq!(order, [Train, Eval, Render, Diagnose, Plan]);
         for s in &stages {
-            match s.name {
-                "train" => {
+            match s.command {
+                Train => {
                     let a: cmd_train::TrainArgs = parse(s).unwrap();
                     assert_eq!(a.iterations, 300);
                     assert_eq!(a.run, Path::new("out/demo/tour/run"));
                 }
-                "eval" => drop(parse::<cmd_eval::EvalArgs>(s).unwrap()),
-                "render" => drop(parse::<cmd_render::RenderArgs>(s).unwrap()),
-                "diagnose" => drop(parse::<cmd_diagnose::DiagnoseArgs>(s).unwrap()),
-                "plan" => {
+                Eval => drop(parse::<cmd_eval::EvalArgs>(s).unwrap()),
+                Render => drop(parse::<cmd_render::RenderArgs>(s).unwrap()),
+                Diagnose => drop(parse::<cmd_diagnose::DiagnoseArgs>(s).unwrap()),
+                Plan => {
                     let a: cmd_plan::PlanArgs = parse(s).unwrap();
                     assert_eq!(a.task, "rope-lift");
                 }
-                other => panic!("unexpected stage {other}"),
             }
         }
         let bad = Stage {
-            name: "train",
+            command: Train,
             argv: vec!["--no-such-option".into()],
         };
         assert!(parse::<cmd_train::TrainArgs>(&bad).is_err());
