@@ -159,10 +159,18 @@ pub fn run(p: &TourPaths, iterations: usize, backbone_mde_cm: f64) -> anyhow::Re
                 let mde = report.metrics["mde_cm"]["mean"]
                     .as_f64()
                     .unwrap_or(f64::NAN);
+                let train = dataset::Dataset::open(&p.data)?
+                    .split_indices(dataset::Split::Train)
+                    .len();
                 println!(
-                    "val MDE: spring-mass {backbone_mde_cm:.3} cm, pgrd {mde:.3} cm. The fixture's \
-                     three training episodes are far too few for a network to learn from; \
-                     docs/RESULTS.md has each object's network trained on 100 episodes."
+                    "val MDE: spring-mass {backbone_mde_cm:.3} cm, pgrd {mde:.3} cm ({}). A \
+                     fixture's {train} training episodes are too few for a network to learn \
+                     from; docs/RESULTS.md has each object's network trained on 100 episodes.",
+                    if mde < backbone_mde_cm {
+                        "the network lower"
+                    } else {
+                        "the network no lower"
+                    }
                 );
             }
             Command::Render => cmd_render::run(&parse(&stage)?)?,
