@@ -1,4 +1,5 @@
-//! Pieces the pipelines share: loading scenes of a split, the run directory's files.
+//! Pieces the pipelines share: loading scenes of a split, the run directory's files, one
+//! command's arguments parsed from a command line built in code.
 
 use std::path::{Path, PathBuf};
 
@@ -420,4 +421,20 @@ pub fn predict_tracked(
         (Some(_), None) => anyhow::bail!("the residual network needs the episode's history"),
         _ => scene.rollout(params, &scene.sim_config(), options())?,
     })
+}
+
+/// A command's arguments parsed as its command line would be.
+#[derive(clap::Parser)]
+struct CommandLine<T: clap::Args> {
+    #[command(flatten)]
+    args: T,
+}
+
+/// The arguments of `cargo xtask <command> <args...>`, parsed by the command's own parser, so
+/// that a pipeline calling another command in code takes that command's defaults and checks.
+pub fn parse_command<T: clap::Args>(command: &str, args: &[String]) -> anyhow::Result<T> {
+    let argv = std::iter::once(command.to_string()).chain(args.iter().cloned());
+    let parsed = <CommandLine<T> as clap::Parser>::try_parse_from(argv)
+        .with_context(|| format!("the command line of `{command}`"))?;
+    Ok(parsed.args)
 }

@@ -110,19 +110,10 @@ fn stages(p: &TourPaths, iterations: usize) -> Vec<Stage> {
     ]
 }
 
-/// A command's arguments parsed from `argv` as its command line would be.
-#[derive(clap::Parser)]
-struct Argv<T: clap::Args> {
-    #[command(flatten)]
-    args: T,
-}
-
 fn parse<T: clap::Args>(stage: &Stage) -> anyhow::Result<T> {
     let name = stage.command.name();
-    let argv = std::iter::once(name.to_string()).chain(stage.argv.iter().cloned());
-    let parsed = <Argv<T> as clap::Parser>::try_parse_from(argv)
-        .with_context(|| format!("the demo's `{name}` stage"))?;
-    Ok(parsed.args)
+    crate::common::parse_command(name, &stage.argv)
+        .with_context(|| format!("the demo's `{name}` stage"))
 }
 
 /// Runs the tour; `backbone_mde_cm` is the fitted backbone's val MDE, printed beside the

@@ -532,16 +532,10 @@ fn add_network(
     run: &Path,
     minutes: f64,
 ) -> anyhow::Result<()> {
-    #[derive(clap::Parser)]
-    struct Train {
-        #[command(flatten)]
-        args: crate::cmd_train::TrainArgs,
-    }
     std::fs::create_dir_all(run)?;
     write_json(&backbone_path(run), file)?;
     let argv = [
-        "train".to_string(),
-        "--data".into(),
+        "--data".to_string(),
         data.root.display().to_string(),
         "--run".into(),
         run.display().to_string(),
@@ -552,8 +546,8 @@ fn add_network(
         "--restart".into(),
         "--quiet".into(),
     ];
-    let train = <Train as clap::Parser>::try_parse_from(argv)?;
-    crate::cmd_train::run(&train.args)?;
+    let train: crate::cmd_train::TrainArgs = crate::common::parse_command("train", &argv)?;
+    crate::cmd_train::run(&train)?;
     let net = read_residual(run)?
         .ok_or_else(|| anyhow::anyhow!("training wrote no network to {}", run.display()))?;
     let options = file.options_for(data, Protocol::Paper)?;
