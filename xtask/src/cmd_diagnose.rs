@@ -82,7 +82,7 @@ pub struct DiagnoseArgs {
     /// `--generations`, `--samples` or `--rescore-scenes` is given; the race and the substep
     /// unless `--race` or `--substep` is given); the command says so and `report.json`
     /// records it (`budget`). `docs/gap.md`, "Time budget".
-    #[arg(long, default_value_t = 10.0)]
+    #[arg(long, default_value_t = 10.0, value_parser = crate::common::parse_minutes)]
     pub budget_min: f64,
     /// Print the estimated time of the diagnosis as given and with the speed options the
     /// budget can choose, and stop.

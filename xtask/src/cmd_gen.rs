@@ -22,9 +22,13 @@ pub struct GenArgs {
     /// Object: rope, paper, flag, sloth, duster, teddy, or `all` (each into <out>/<object>).
     #[arg(long)]
     pub object: String,
-    /// Output directory.
+    /// Output directory. One that already holds files is refused unless `--overwrite` is
+    /// given; the dataset is written beside it and moved into place only when complete.
     #[arg(long)]
     pub out: PathBuf,
+    /// Replace an existing dataset at `--out` (once the new one is complete).
+    #[arg(long)]
+    pub overwrite: bool,
     /// Effects: `default`, `none`, or a comma-separated list of effect names.
     #[arg(long, default_value = "default")]
     pub effects: String,
@@ -110,6 +114,9 @@ pub fn run(args: &GenArgs) -> anyhow::Result<()> {
         } else {
             args.out.clone()
         };
+        // Checked before the minutes of simulation, not after.
+        let staged = crate::staged::StagedDir::new(&dir, args.overwrite)?;
+
         let bar = ProgressBar::new(0);
         bar.set_style(
             ProgressStyle::with_template("{msg:>8} [{bar:30}] {pos}/{len} recordings {elapsed}")
@@ -123,8 +130,9 @@ pub fn run(args: &GenArgs) -> anyhow::Result<()> {
             bar.set_position(done as u64);
         })?;
         let simulated = start.elapsed().as_secs_f64();
-        data.write(&dir)
+        data.write(staged.path())
             .with_context(|| format!("writing {}", dir.display()))?;
+        staged.commit()?;
         bar.finish_and_clear();
         println!(
             "{}: {} episodes ({} train, {} val), {} tracked of {} fine particles, effects [{}] -> {} ({:.1} s)",

@@ -13,9 +13,14 @@ pub struct ImportArgs {
     format: SourceFormat,
     /// Source directory (for `deform`: a DLOk folder holding train/ and eval/).
     dir: PathBuf,
-    /// Output dataset directory.
+    /// Output dataset directory. One that already holds files is refused unless
+    /// `--overwrite` is given; the dataset is written beside it and moved into place only
+    /// when every source file has converted.
     #[arg(long)]
     out: PathBuf,
+    /// Replace an existing dataset at `--out` (once the new one is complete).
+    #[arg(long)]
+    overwrite: bool,
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]
@@ -29,8 +34,10 @@ pub fn run(args: &ImportArgs) -> anyhow::Result<()> {
     match args.format {
         SourceFormat::Deform => {
             let t0 = std::time::Instant::now();
-            let report = dataset::import::deform::import(&args.dir, &args.out)
+            let staged = crate::staged::StagedDir::new(&args.out, args.overwrite)?;
+            let report = dataset::import::deform::import(&args.dir, staged.path())
                 .with_context(|| format!("importing DEFORM data from {}", args.dir.display()))?;
+            staged.commit()?;
             let count = |s| report.episodes.iter().filter(|e| e.1 == s).count();
             println!(
                 "imported {}: {} markers, {} train + {} val episodes -> {} ({:.1} s)",

@@ -15,6 +15,10 @@ pub struct MetricsArgs {
     /// Ground-truth cloud: `.npy`, shape (M, 3), float32 or float64.
     #[arg(long)]
     pub gt: PathBuf,
+    /// Skip the exact EMD (an assignment problem: seconds for a few thousand points, far
+    /// longer for tens of thousands in degenerate layouts, e.g. points along one line).
+    #[arg(long)]
+    pub no_emd: bool,
 }
 
 /// Reads both clouds and prints MDE (equal sizes only), both one-sided Chamfer means, their
@@ -22,23 +26,40 @@ pub struct MetricsArgs {
 pub fn run(args: &MetricsArgs) -> anyhow::Result<()> {
     let pred = read_npy_points(&args.pred)?;
     let gt = read_npy_points(&args.gt)?;
-    let report = metrics_json(&pred, &gt)
+    if !args.no_emd && pred.len().min(gt.len()) > 5000 {
+        eprintln!(
+            "exact EMD of {} x {} points may take minutes; --no-emd skips it",
+            pred.len(),
+            gt.len()
+        );
+    }
+    let report = metrics_json(&pred, &gt, !args.no_emd)
         .with_context(|| format!("{} vs {}", args.pred.display(), args.gt.display()))?;
     println!("{}", serde_json::to_string_pretty(&report)?);
     Ok(())
 }
 
 /// The JSON report for two clouds.
-fn metrics_json(pred: &[[f64; 3]], gt: &[[f64; 3]]) -> anyhow::Result<serde_json::Value> {
+fn metrics_json(
+    pred: &[[f64; 3]],
+    gt: &[[f64; 3]],
+    with_emd: bool,
+) -> anyhow::Result<serde_json::Value> {
     let c = chamfer(pred, gt)?;
-    let emd = EmdSolver::new().emd(pred, gt)?;
+    let emd = if with_emd {
+        Some(EmdSolver::new().emd(pred, gt)?)
+    } else {
+        None
+    };
     let same_size = pred.len() == gt.len();
     let mde = if same_size {
         Some(mde(pred, gt)?)
     } else {
         None
     };
-    let emd_convention = if same_size {
+    let emd_convention = if !with_emd {
+        "not computed (--no-emd)"
+    } else if same_size {
         "exact EMD: optimal one-to-one assignment on Euclidean cost, mean matched distance"
     } else {
         "exact EMD, partial: each point of the smaller cloud matched to a distinct point of the \
@@ -345,7 +366,7 @@ mod tests {
     fn report_fields_and_nan() {
         let pred = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]];
         let gt = [[0.0, 0.0, 0.5], [1.0, 0.0, 0.5]];
-        let r = metrics_json(&pred, &gt).unwrap();
+        let r = metrics_json(&pred, &gt, true).unwrap();
         for key in ["mde", "chamfer_pred_to_gt", "chamfer_gt_to_pred", "emd"] {
             assert!((r[key].as_f64().unwrap() - 0.5).abs() < 1e-12, "{key}");
             assert!(r["conventions"][key].is_string());
@@ -358,7 +379,7 @@ mod tests {
                 .contains("two-sided")
         );
         // Different sizes: no MDE, partial EMD.
-        let r = metrics_json(&pred, &gt[..1]).unwrap();
+        let r = metrics_json(&pred, &gt[..1], true).unwrap();
         assert!(r["mde"].is_null());
         assert!(
             r["conventions"]["emd"]
@@ -366,8 +387,17 @@ mod tests {
                 .unwrap()
                 .contains("partial")
         );
+        // Without the EMD: the field is null and its convention says why.
+        let r = metrics_json(&pred, &gt, false).unwrap();
+        assert!(r["emd"].is_null());
+        assert!(
+            r["conventions"]["emd"]
+                .as_str()
+                .unwrap()
+                .contains("--no-emd")
+        );
         let bad = [[0.0, f64::NAN, 0.0]];
-        let e = format!("{:#}", metrics_json(&bad, &gt).unwrap_err());
+        let e = format!("{:#}", metrics_json(&bad, &gt, true).unwrap_err());
         assert!(e.contains("non-finite") && e.contains("prediction"), "{e}");
     }
 }

@@ -89,8 +89,8 @@ pub struct PlanArgs {
     /// The world rope's resolution.
     #[arg(long, value_enum, default_value_t = ResolutionArg::Coarse)]
     pub resolution: ResolutionArg,
-    /// Override the task's step limit.
-    #[arg(long)]
+    /// Override the task's step limit (>= 1).
+    #[arg(long, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..))]
     pub max_steps: Option<usize>,
     /// Run every trial to the step limit, also after it succeeded (default: stop at success);
     /// success is then judged on the final state.
@@ -332,13 +332,22 @@ pub fn run(args: &PlanArgs) -> anyhow::Result<()> {
                     at(1.0)
                 )
             });
+            // A trial the planner had to stop says why on the console too, not only in the JSON.
+            let stopped = report
+                .stopped
+                .as_ref()
+                .map_or(String::new(), |why| format!("; stopped: {why}"));
+            let replan = if report.steps > 0 {
+                format!(", {:.2} s per replan", report.replan_wall_s_mean)
+            } else {
+                String::new()
+            };
             eprintln!(
-                "{kind} {} trial {t}: {} in {} steps, final Chamfer {:.2} cm, {:.2} s per replan{gains}",
+                "{kind} {} trial {t}: {} in {} steps, final Chamfer {:.2} cm{replan}{gains}{stopped}",
                 model_name(m),
                 if report.success { "success" } else { "failure" },
                 report.steps,
                 report.final_chamfer_cm,
-                report.replan_wall_s_mean
             );
             trials.push(report);
             trajectories.push(traj);

@@ -63,16 +63,29 @@ pub struct RefineArgs {
 /// Runs the refinement and writes `<out>/backbone.json`.
 pub fn run(args: &RefineArgs) -> anyhow::Result<()> {
     let t0 = Instant::now();
+    // Compared as the directories they name (`runs/a/` and `./runs/a` are one run).
+    let same = match (
+        std::fs::canonicalize(&args.out),
+        std::fs::canonicalize(&args.run),
+    ) {
+        (Ok(a), Ok(b)) => a == b,
+        _ => args.out == args.run,
+    };
+    anyhow::ensure!(
+        !same,
+        "--out must be a new run directory, not the fitted run"
+    );
+    anyhow::ensure!(
+        args.lr.is_finite() && args.lr > 0.0,
+        "--lr must be finite and > 0, got {}",
+        args.lr
+    );
     let data = Dataset::open(&args.data)?;
     let mut file = read_backbone(&args.run)?;
     anyhow::ensure!(
         file.refined.is_none(),
         "{} is already refined; refine the run it came from",
         args.run.display()
-    );
-    anyhow::ensure!(
-        args.out != args.run,
-        "--out must be a new run directory, not the fitted run"
     );
     let scenes = scenes(&data, Split::Train, args.protocol.into(), file.setting())?;
     std::fs::create_dir_all(&args.out)
@@ -174,4 +187,44 @@ pub fn run(args: &RefineArgs) -> anyhow::Result<()> {
         backbone_path(&args.out).display()
     );
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_fitted_run_named_another_way_is_still_refused_as_the_output() {
+        let run = std::env::temp_dir().join(format!("pgrd-refine-same-{}", std::process::id()));
+        std::fs::create_dir_all(&run).unwrap();
+        let dotted = run.join(".");
+        for out in [run.clone(), dotted] {
+            let args: RefineArgs = crate::common::parse_command(
+                "refine",
+                &[
+                    "--data".into(),
+                    "no-such-dataset".into(),
+                    "--run".into(),
+                    run.display().to_string(),
+                    "--out".into(),
+                    out.display().to_string(),
+                ],
+            )
+            .unwrap();
+            let err = run_err(&args);
+            assert!(
+                err.contains("not the fitted run"),
+                "{}: {err}",
+                out.display()
+            );
+        }
+        std::fs::remove_dir_all(&run).ok();
+    }
+
+    fn run_err(args: &RefineArgs) -> String {
+        match super::run(args) {
+            Ok(()) => "ran".into(),
+            Err(e) => e.to_string(),
+        }
+    }
 }

@@ -76,8 +76,8 @@ pub struct TrainArgs {
     /// Optimiser steps.
     #[arg(long, default_value_t = 2000)]
     pub iterations: usize,
-    /// Rollouts per optimiser step.
-    #[arg(long, default_value_t = 2)]
+    /// Rollouts per optimiser step (>= 1).
+    #[arg(long, default_value_t = 2, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..))]
     pub batch: usize,
     /// Model steps per training rollout.
     #[arg(long, default_value_t = 5)]
@@ -133,7 +133,7 @@ pub struct TrainArgs {
     #[arg(long)]
     pub restart: bool,
     /// Stop (after saving) once this many minutes of training have passed in this session.
-    #[arg(long)]
+    #[arg(long, value_parser = crate::common::parse_minutes)]
     pub max_minutes: Option<f64>,
     /// Ablation: encoder family.
     #[arg(long, value_enum, default_value_t = EncoderArg::Ptv3)]
@@ -434,6 +434,18 @@ fn model_config(args: &TrainArgs) -> ModelConfig {
 
 /// The network of `path`, checked to have the configuration `want` that the flags ask for.
 fn initial_network(path: &Path, want: &ModelConfig) -> anyhow::Result<ResidualNet> {
+    // A run directory is the likely slip; name the file it holds.
+    let net_in_dir = path.join("residual.safetensors");
+    anyhow::ensure!(
+        !path.is_dir(),
+        "--init-from {} is a directory; give the network file{}",
+        path.display(),
+        if net_in_dir.is_file() {
+            format!(", e.g. {}", net_in_dir.display())
+        } else {
+            " (a residual.safetensors with its residual.json beside it)".into()
+        }
+    );
     let net = ResidualNet::load(path)
         .with_context(|| format!("reading the --init-from network {}", path.display()))?;
     let (have, want_v) = (
@@ -868,19 +880,27 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
         .collect::<Vec<_>>();
     let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
     let k = loss.len().min(200);
+    // With the yardstick off there is no backbone loss to compare with (not a NaN ratio).
+    let yardstick = if train_cfg.yardstick_every > 0 {
+        format!(
+            ", {:.3} -> {:.3} x the backbone's on the same segments (first/last {k} steps, scored every {})",
+            loss_ratio(&loss, &base_loss, 0..k),
+            loss_ratio(&loss, &base_loss, loss.len() - k..loss.len()),
+            train_cfg.yardstick_every,
+        )
+    } else {
+        String::new()
+    };
     say(
         args,
         format!(
-            "pgrd ({}) on {}: {} steps, {} loss {:.4} -> {:.4} {unit} (mean of first/last 20), {:.3} -> {:.3} x the backbone's on the same segments (first/last {k} steps, scored every {}), {} diverged rollouts, {:.1} s -> {}",
+            "pgrd ({}) on {}: {} steps, {} loss {:.4} -> {:.4} {unit} (mean of first/last 20){yardstick}, {} diverged rollouts, {:.1} s -> {}",
             trainer.net.config().variant(),
             data.meta.object,
             trainer.step,
             train_cfg.loss.name(),
             mean(&first),
             mean(&last),
-            loss_ratio(&loss, &base_loss, 0..k),
-            loss_ratio(&loss, &base_loss, loss.len() - k..loss.len()),
-            train_cfg.yardstick_every,
             diverged_rollouts,
             prior_wall + t_train.elapsed().as_secs_f64(),
             report_path.display()

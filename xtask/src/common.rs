@@ -125,9 +125,12 @@ pub fn load_scenes(
         .into_iter()
         .map(|i| {
             let ep = data.load_episode(i)?;
-            let window = protocol.window(ep.frames())?;
-            let scene = Scene::new(&data.meta, &ep, window, config)
-                .with_context(|| format!("episode {i} of {}", data.root.display()))?;
+            let name = || {
+                let file = data.meta.episodes.get(i).map_or("?", |e| e.file.as_str());
+                format!("episode {i} ({file}) of {}", data.root.display())
+            };
+            let window = protocol.window(ep.frames()).with_context(name)?;
+            let scene = Scene::new(&data.meta, &ep, window, config).with_context(name)?;
             Ok((i, scene))
         })
         .collect()
@@ -338,7 +341,15 @@ pub fn read_backbone(run: &Path) -> anyhow::Result<BackboneFile> {
     let path = backbone_path(run);
     let text = std::fs::read_to_string(&path)
         .with_context(|| format!("reading {} (run `cargo xtask fit` first)", path.display()))?;
-    serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))
+    let file: BackboneFile =
+        serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))?;
+    anyhow::ensure!(
+        file.model == "spring-mass",
+        "{}: model '{}'; this pgrd reads spring-mass runs only",
+        path.display(),
+        file.model
+    );
+    Ok(file)
 }
 
 /// The run's residual network, `<run>/residual.safetensors`, when it has one (the model is then
@@ -437,4 +448,15 @@ pub fn parse_command<T: clap::Args>(command: &str, args: &[String]) -> anyhow::R
     let parsed = <CommandLine<T> as clap::Parser>::try_parse_from(argv)
         .with_context(|| format!("the command line of `{command}`"))?;
     Ok(parsed.args)
+}
+
+/// `--…-min(utes)` values: finite and >= 0 (a NaN or negative budget would silently mean
+/// "none" or "stop at once").
+pub fn parse_minutes(text: &str) -> Result<f64, String> {
+    let v: f64 = text.parse().map_err(|e| format!("{e}"))?;
+    if v.is_finite() && v >= 0.0 {
+        Ok(v)
+    } else {
+        Err(format!("{v} minutes: must be finite and >= 0"))
+    }
 }

@@ -27,6 +27,7 @@ mod common;
 mod demo_tour;
 mod eval_horizon;
 mod report;
+mod staged;
 mod train_choice;
 mod train_resume;
 

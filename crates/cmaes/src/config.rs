@@ -224,10 +224,10 @@ impl CmaesConfig {
             )));
         }
         if let Some(p) = self.population
-            && p < 2
+            && !(2..=MAX_POPULATION).contains(&p)
         {
             return Err(Error::InvalidConfig(format!(
-                "population must be at least 2, got {p}"
+                "population must be between 2 and {MAX_POPULATION}, got {p}"
             )));
         }
         if let Some(b) = &self.bounds {
@@ -256,6 +256,11 @@ impl CmaesConfig {
         self.termination.validate()
     }
 }
+
+/// The largest population [`CmaesConfig::validate`] accepts: far beyond any use (pycma's
+/// restarts with growing populations reach a few thousand), and small enough that a typo such
+/// as `--population 18446744073709551615` is an error rather than an allocation failure.
+pub const MAX_POPULATION: usize = 100_000;
 
 /// pycma's and Hansen's default population size `4 + ⌊3 ln n⌋`.
 pub fn default_population(dim: usize) -> usize {

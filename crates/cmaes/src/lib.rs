@@ -44,7 +44,7 @@ mod scaling;
 mod stop;
 mod strategy;
 
-pub use config::{Bounds, CmaesConfig, Termination, default_population};
+pub use config::{Bounds, CmaesConfig, MAX_POPULATION, Termination, default_population};
 pub use es::CmaEs;
 pub use restart::{Ipop, Minimum, POPULATION_GROWTH, RunSummary, minimize};
 pub use scaling::{INTEGER_STD_FRACTION, Parameter, Parameters, Scale};

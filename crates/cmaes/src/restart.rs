@@ -125,7 +125,9 @@ impl Ipop {
         config.population = Some(
             self.base
                 .population_size()
-                .saturating_mul(POPULATION_GROWTH.saturating_pow(k as u32)),
+                .saturating_mul(POPULATION_GROWTH.saturating_pow(k as u32))
+                // Many restarts would double it past anything a computer can hold.
+                .min(crate::MAX_POPULATION),
         );
         if let Some(m) = self.base.termination.max_evaluations {
             config.termination.max_evaluations = Some(m - spent);

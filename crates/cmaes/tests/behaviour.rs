@@ -245,3 +245,18 @@ fn bounded_restarts_start_inside_the_box_at_new_points() {
         assert_ne!(s, &starts[0]);
     }
 }
+
+#[test]
+fn a_population_beyond_any_use_is_a_config_error_not_an_allocation_failure() {
+    for p in [usize::MAX, cmaes::MAX_POPULATION + 1, 1] {
+        let mut config = CmaesConfig::new(vec![0.5; 3], 0.2);
+        config.population = Some(p);
+        match CmaEs::new(config) {
+            Err(Error::InvalidConfig(m)) => assert!(m.contains("population"), "{m}"),
+            other => panic!("population {p}: {:?}", other.map(|_| ())),
+        }
+    }
+    let mut config = CmaesConfig::new(vec![0.5; 3], 0.2);
+    config.population = Some(cmaes::MAX_POPULATION);
+    assert!(config.validate().is_ok());
+}

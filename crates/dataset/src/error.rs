@@ -35,4 +35,21 @@ impl Error {
             message: message.into(),
         }
     }
+
+    /// The same error with `note` added to its message (an I/O error is left as it is).
+    pub(crate) fn with_note(self, note: &str) -> Self {
+        match self {
+            Error::Invalid { path, message } => Error::invalid(path, format!("{message} ({note})")),
+            other => other,
+        }
+    }
+
+    /// The same error about `path` (an episode built in memory names no file until its
+    /// source's path is known).
+    pub(crate) fn at(self, path: impl Into<PathBuf>) -> Self {
+        match self {
+            Error::Invalid { message, .. } => Error::invalid(path, message),
+            Error::Io { source, .. } => Error::io(path, source),
+        }
+    }
 }

@@ -172,8 +172,65 @@ struct Checkpoint {
     /// checkpoints written before it was recorded, all of which used the default.
     #[serde(default)]
     substep: Option<springs::Substep>,
+    /// [`data_fingerprint`] of the scenes fitted. Absent in checkpoints written before
+    /// session 100, which are resumed on the count check alone, as then.
+    #[serde(default)]
+    data: Option<String>,
     es: CmaEs,
     outcome: FitOutcome,
+}
+
+/// A fingerprint of the scenes a fit sees (FNV-1a over each scene's window, tracked count,
+/// start positions and last tracked frame), so a checkpoint is not resumed on other data of
+/// the same size. Not a cryptographic hash: it guards against mistakes, not against forgery.
+fn data_fingerprint(scenes: &[Scene]) -> String {
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    let mut eat = |bytes: &[u8]| {
+        for b in bytes {
+            h ^= u64::from(*b);
+            h = h.wrapping_mul(0x0100_0000_01b3);
+        }
+    };
+    for s in scenes {
+        eat(&(s.window.start as u64).to_le_bytes());
+        eat(&(s.window.steps as u64).to_le_bytes());
+        eat(&(s.tracked as u64).to_le_bytes());
+        for p in s.init.x.iter().chain(s.truth.last().into_iter().flatten()) {
+            for c in p.to_array() {
+                eat(&c.to_bits().to_le_bytes());
+            }
+        }
+    }
+    format!("{h:016x}")
+}
+
+/// Why a checkpoint's outcome cannot belong to a search of `dim` parameters, if it cannot
+/// (a hand-edited or truncated file must be refused, not indexed out of bounds).
+fn outcome_mismatch(outcome: &FitOutcome, dim: usize) -> Option<String> {
+    if outcome.names.len() != dim {
+        return Some(format!(
+            "{} parameter names for {dim} parameters",
+            outcome.names.len()
+        ));
+    }
+    if !outcome.best.is_empty() && outcome.best.len() != dim {
+        return Some(format!(
+            "best has {} values for {dim} parameters",
+            outcome.best.len()
+        ));
+    }
+    if outcome.generation_best.len() != outcome.history.len() {
+        return Some(format!(
+            "{} generation bests for {} generations",
+            outcome.generation_best.len(),
+            outcome.history.len()
+        ));
+    }
+    outcome
+        .generation_best
+        .iter()
+        .position(|b| b.len() != dim)
+        .map(|g| format!("generation {g}'s best has the wrong length"))
 }
 
 /// Loss of one candidate on one scene: mean squared position error, or [`PENALTY`].
@@ -231,10 +288,20 @@ pub fn fit<F: Family>(
                 || same != *config
                 || ck.scenes != scenes.len()
                 || scenes.iter().any(|s| s.sim_config().substep != substep)
+                || ck
+                    .data
+                    .as_ref()
+                    .is_some_and(|d| *d != data_fingerprint(scenes))
             {
                 return Err(checkpoint_error(
                     path,
                     "was written by a fit with other settings or data; remove it to start afresh",
+                ));
+            }
+            if let Some(why) = outcome_mismatch(&ck.outcome, ck.es.dim()) {
+                return Err(checkpoint_error(
+                    path,
+                    format!("is damaged ({why}); remove it to start afresh"),
                 ));
             }
             let mut outcome = ck.outcome;
@@ -411,6 +478,7 @@ impl PausedFit {
                     config: config.clone(),
                     scenes: scenes.len(),
                     substep: scenes.first().map(|s| s.sim_config().substep),
+                    data: Some(data_fingerprint(scenes)),
                     es: es.clone(),
                     outcome: outcome.clone(),
                 };

@@ -144,6 +144,29 @@ fn resumed_fit_equals_uninterrupted() {
     };
     let (_, spectral_scenes) = synthetic_scenes_with(&truth(), 3, &spectral);
     assert!(fit(&spectral_scenes, &family, &config, Some(&ck), &mut |_| {}).is_err());
+    // And one written on other data of the same size (another material, the same motions).
+    let softer = SpringParams {
+        stiffness: 0.5 * truth().stiffness,
+        ..truth()
+    };
+    let (_, other_data) = synthetic_scenes(&softer, 3);
+    let r = fit(&other_data, &family, &config, Some(&ck), &mut |_| {});
+    assert!(
+        matches!(&r, Err(fit::FitError::Checkpoint { message, .. }) if message.contains("other settings or data")),
+        "{r:?}"
+    );
+    // A damaged checkpoint (its best cut short) is refused with a reason, not indexed past.
+    let text = std::fs::read_to_string(&ck).unwrap();
+    let mut json: serde_json::Value = serde_json::from_str(&text).unwrap();
+    json["outcome"]["best"].as_array_mut().unwrap().pop();
+    let damaged = ck.with_extension("damaged.json");
+    std::fs::write(&damaged, json.to_string()).unwrap();
+    let r = fit(&scenes, &family, &config, Some(&damaged), &mut |_| {});
+    assert!(
+        matches!(&r, Err(fit::FitError::Checkpoint { message, .. }) if message.contains("damaged")),
+        "{r:?}"
+    );
+    std::fs::remove_file(&damaged).ok();
     config.generations = 4;
     let mut resumed = fit(&scenes, &family, &config, Some(&ck), &mut |_| {}).unwrap();
     assert_eq!(resumed.resumed_from, Some(2));

@@ -61,9 +61,16 @@ pub fn paired_shrinkage(
     {
         return Err(GapError::Config("errors must be finite and >= 0".into()));
     }
+    if resamples == 0 {
+        // One would not do either: its "interval" is a single draw that need not even
+        // contain the estimate; but 0 is the value that slips through by mistake.
+        return Err(GapError::Config(
+            "a bootstrap interval needs resamples >= 1".into(),
+        ));
+    }
     let shrinkage = ratio(before, after, 0..n);
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let mut draws: Vec<f64> = (0..resamples.max(1))
+    let mut draws: Vec<f64> = (0..resamples)
         .map(|_| {
             let idx: Vec<usize> = (0..n).map(|_| rng.random_range(0..n)).collect();
             ratio(before, after, idx.into_iter())
@@ -284,6 +291,7 @@ mod tests {
         assert!(paired_shrinkage(&[], &[], 10, 0).is_err());
         assert!(paired_shrinkage(&[1.0], &[1.0, 2.0], 10, 0).is_err());
         assert!(paired_shrinkage(&[f64::NAN], &[1.0], 10, 0).is_err());
+        assert!(paired_shrinkage(&[1.0], &[1.0], 0, 0).is_err());
     }
 
     #[test]

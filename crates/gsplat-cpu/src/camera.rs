@@ -8,6 +8,10 @@ use crate::Error;
 /// viewing axis) are culled.
 pub const DEFAULT_NEAR_M: f32 = 0.01;
 
+/// The most pixels a [`Camera`] may have: 64 megapixels (8192 × 8192), 1.3 GB of frame
+/// buffers; beyond it [`Camera::validate`] refuses the size instead of the allocation failing.
+pub const MAX_PIXELS: usize = 1 << 26;
+
 /// A pinhole camera.
 ///
 /// Camera frame (OpenCV convention): `x` right, `y` down, `z` forward (viewing direction).
@@ -209,11 +213,12 @@ impl Camera {
                 self.width, self.height
             ));
         }
-        // Tile and pixel indices are kept in u32/i32.
-        if self.width > 1 << 20 || self.height > 1 << 20 {
+        // Tile and pixel indices are kept in u32/i32; the pixel count bounds the frame's
+        // buffers (20 bytes a pixel), which must fit in memory rather than abort.
+        if self.width > 1 << 20 || self.height > 1 << 20 || self.width * self.height > MAX_PIXELS {
             return bad(format!(
-                "image size {} x {} too large",
-                self.width, self.height
+                "image size {} x {} too large (at most {} pixels, 2^20 a side)",
+                self.width, self.height, MAX_PIXELS
             ));
         }
         for (name, v) in [("fx", self.fx), ("fy", self.fy), ("near", self.near)] {

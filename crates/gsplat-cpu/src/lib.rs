@@ -49,7 +49,7 @@ mod project;
 mod raster;
 mod rig;
 
-pub use camera::{Camera, DEFAULT_NEAR_M};
+pub use camera::{Camera, DEFAULT_NEAR_M, MAX_PIXELS};
 pub use error::Error;
 pub use frame::{Image, MASK_THRESHOLD};
 pub use gaussians::Gaussians;

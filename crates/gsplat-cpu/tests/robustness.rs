@@ -334,3 +334,17 @@ fn framing_fits_points_in_view() {
     assert!(Camera::framing(&one, Vec3::X, Vec3::Z, 1.0, 10, 10, 0.0).is_err());
     assert!(Camera::framing(&[Vec3::NAN], Vec3::X, Vec3::Z, 1.0, 10, 10, 0.5).is_err());
 }
+
+#[test]
+fn an_image_too_large_to_hold_is_refused_before_anything_is_allocated() {
+    let look = |w, h| Camera::look_at(Vec3::new(0.0, -1.0, 0.0), Vec3::ZERO, Vec3::Z, 1.0, w, h);
+    // Each side within 2^20, but 10^10 pixels (200 GB of buffers).
+    match look(100_000, 100_000) {
+        Err(Error::Camera(m)) => assert!(m.contains("too large"), "{m}"),
+        other => panic!("{:?}", other.map(|_| ())),
+    }
+    assert!(look(1 << 21, 1).is_err());
+    assert!(look(8192, 8192).is_ok());
+    assert!(look(8192, 8193).is_err());
+    assert_eq!(gsplat::MAX_PIXELS, 8192 * 8192);
+}

@@ -4,6 +4,8 @@
 
 #[path = "../../../xtask/src/cmd_gen.rs"]
 mod cmd_gen;
+#[path = "../../../xtask/src/staged.rs"]
+mod staged;
 
 use clap::Parser;
 

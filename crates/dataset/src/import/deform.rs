@@ -190,7 +190,12 @@ pub fn import(dir: &Path, out: &Path) -> Result<ImportReport> {
             ));
         }
         report.markers = rec.markers;
-        let index = writer.add_episode(&rec.to_episode()?, split)?;
+        // A coordinate beyond f32's range (±3.4e38) is finite in the pickle but not here.
+        let episode = rec.to_episode().map_err(|e| {
+            e.at(&path)
+                .with_note("as 32-bit floats, the format's type (±3.4e38 at most)")
+        })?;
+        let index = writer.add_episode(&episode, split)?;
         let file = format!("ep_{index:04}.safetensors");
         report
             .episodes
