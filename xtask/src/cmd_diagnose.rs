@@ -92,9 +92,9 @@ pub struct DiagnoseArgs {
     #[arg(long, value_enum, default_value_t = ProtocolArg::Paper)]
     pub protocol: ProtocolArg,
     /// Comma-separated candidate effects (default: the nine library effects). Names starting
-    /// with `+` are added to the nine instead, e.g. `+gravity-scale`, `+bending-damping` or
-    /// `+twist` (extra candidates, offered on request only; the last two on `chain` datasets;
-    /// `docs/gap.md`).
+    /// with `+` are added to the nine instead, e.g. `+gravity-scale`, `+bending-damping`,
+    /// `+twist` or `+stiffness-lag` (extra candidates, offered on request only;
+    /// `bending-damping` and `twist` on `chain` datasets; `docs/gap.md`).
     #[arg(long)]
     pub candidates: Option<String>,
     /// Effects already in the model, refitted with the backbone in the control and in every
@@ -602,6 +602,14 @@ fn setup(args: &DiagnoseArgs) -> anyhow::Result<Setup> {
             "--candidates: {} acts along a cable's order and needs a `chain` dataset (e.g. \
              `xtask import deform`); {} is not one",
             c.name(),
+            args.data.display()
+        );
+    }
+    if config.candidates.contains(&Candidate::StiffnessLag) && gap::grasp_lag(&train).is_none() {
+        anyhow::bail!(
+            "--candidates: stiffness-lag needs a grasp lag, and every tracked point of {}'s \
+             training episodes keeps the same distance from where the grippers' motion would \
+             carry it",
             args.data.display()
         );
     }

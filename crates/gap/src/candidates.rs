@@ -49,6 +49,9 @@ pub enum Candidate {
     /// Beyond the library, offered on request ([`Candidate::EXTRA`]), chains only: a cable's
     /// torsion between its clamped ends ([`Twist`]).
     Twist,
+    /// Beyond the library, offered on request ([`Candidate::EXTRA`]): stiffness varying along
+    /// the grasp lag ([`MaterialFrame::lag`]), soft where the object trails the grippers.
+    StiffnessLag,
     /// Not in the library: a generic external acceleration field (the `unknown` probe).
     ExternalField,
 }
@@ -81,10 +84,11 @@ impl Candidate {
     /// Candidates beyond the nine, offered on request only (`--candidates`): the reference
     /// world cannot switch them on, so the bench cannot check them, and they stay out of the
     /// default list.
-    pub const EXTRA: [Candidate; 3] = [
+    pub const EXTRA: [Candidate; 4] = [
         Candidate::GravityScale,
         Candidate::BendingDamping,
         Candidate::Twist,
+        Candidate::StiffnessLag,
     ];
 
     /// The effect's name, as used by the reference world and in reports.
@@ -102,6 +106,7 @@ impl Candidate {
             Candidate::GravityScale => "gravity-scale",
             Candidate::BendingDamping => "bending-damping",
             Candidate::Twist => "twist",
+            Candidate::StiffnessLag => "stiffness-lag",
             Candidate::ExternalField => "external-field",
         }
     }
@@ -122,6 +127,11 @@ impl Candidate {
             Candidate::Drag => vec![Parameter::log("drag_kg_per_m", 1e-3, 10.0)],
             Candidate::StiffnessHeterogeneity => {
                 vec![Parameter::linear("log_stiffness_slope", -2.0, 2.0)]
+            }
+            // Anchored along the grasp lag (`MaterialFrame::lag`): up to e^20 between the parts
+            // that move with the grippers and those that trail them most (session 100).
+            Candidate::StiffnessLag => {
+                vec![Parameter::linear("log_stiffness_lag_slope", -10.0, 10.0)]
             }
             Candidate::NonlinearElasticity => vec![
                 Parameter::log("stiffening_beta", 1.0, 1000.0),
@@ -178,6 +188,8 @@ impl Candidate {
         match self {
             Candidate::Drag => vec![0.3],
             Candidate::StiffnessHeterogeneity => vec![0.5],
+            // The trailing parts e^4 softer than those that move with the grippers.
+            Candidate::StiffnessLag => vec![-2.0],
             Candidate::NonlinearElasticity => vec![30.0, 0.7],
             Candidate::Bending => vec![0.05],
             Candidate::Friction => vec![0.5],
@@ -219,6 +231,7 @@ impl Candidate {
         match self {
             Candidate::Drag | Candidate::Bending => vec![0.0],
             Candidate::StiffnessHeterogeneity | Candidate::MassDistribution => vec![0.0],
+            Candidate::StiffnessLag => vec![0.0],
             Candidate::NonlinearElasticity => vec![0.0, 1.0],
             Candidate::Friction | Candidate::ActuationDelay => vec![0.0],
             Candidate::GravityScale => vec![1.0],
@@ -239,6 +252,14 @@ impl Candidate {
             Candidate::StiffnessHeterogeneity => Box::new(StiffnessGradient {
                 slope: f(0),
                 material: frame.coordinate.clone(),
+                lag_slope: 0.0,
+                lag: None,
+            }),
+            Candidate::StiffnessLag => Box::new(StiffnessGradient {
+                slope: 0.0,
+                material: frame.coordinate.clone(),
+                lag_slope: f(0),
+                lag: frame.lag.clone(),
             }),
             Candidate::NonlinearElasticity => Box::new(stiffening(v)),
             Candidate::Bending => Box::new(BendingSprings::new(f(0))),
@@ -273,7 +294,8 @@ impl Candidate {
 }
 
 /// The effects of `list` (each a candidate at its parameter values), in the order they are set
-/// up: a stiffness field first, so that effects built on the springs' stiffness (bending,
+/// up: the stiffness fields first (`stiffness-heterogeneity`, `stiffness-lag`), so that
+/// effects built on the springs' stiffness (bending,
 /// [`crate::forces::BendingSprings`]) see it; the rest in the order given. Bending springs
 /// also follow the list's spring law (`nonlinear-elasticity`), when it has one.
 pub(crate) fn compose<'a>(
@@ -281,7 +303,12 @@ pub(crate) fn compose<'a>(
     frame: &MaterialFrame,
 ) -> Vec<Box<dyn Effect>> {
     let mut list: Vec<(Candidate, &[f64])> = list.into_iter().collect();
-    list.sort_by_key(|(c, _)| *c != Candidate::StiffnessHeterogeneity);
+    list.sort_by_key(|(c, _)| {
+        !matches!(
+            c,
+            Candidate::StiffnessHeterogeneity | Candidate::StiffnessLag
+        )
+    });
     let law = list
         .iter()
         .find(|(c, _)| *c == Candidate::NonlinearElasticity)
@@ -315,6 +342,12 @@ fn stiffening(v: &[f64]) -> StrainStiffening {
 pub struct MaterialFrame {
     /// Coordinate along the principal axis of the reference shape, scaled to [−1, 1].
     pub coordinate: Arc<Vec<f32>>,
+    /// Each tracked particle's grasp lag, scaled to [−1, 1]: −1 for the part that moves most
+    /// rigidly with the grippers, +1 for the part that trails them most
+    /// ([`crate::grasp_lag`]). Learned from training data; `None` without it (a frame made
+    /// from one shape) or when every particle lags alike, and then the stiffness candidate's
+    /// lag slope does nothing.
+    pub lag: Option<Arc<Vec<f32>>>,
     /// Mean tracked position over the training data, m (the external-field probe's centre is
     /// searched around it).
     pub centre: Vec3,
@@ -352,8 +385,18 @@ impl MaterialFrame {
         Ok(MaterialFrame {
             coordinate: Arc::new(u),
             centre,
+            lag: None,
             focus: None,
         })
+    }
+
+    /// The same frame with the grasp-lag coordinate `lag` (one value per tracked particle, in
+    /// [−1, 1]; [`crate::grasp_lag`]).
+    pub fn with_lag(self, lag: Option<Vec<f32>>) -> Self {
+        MaterialFrame {
+            lag: lag.map(Arc::new),
+            ..self
+        }
     }
 
     /// The same frame with the probe's start at `focus`.

@@ -529,7 +529,8 @@ fn signature_cosine(
     }
 }
 
-/// The training data's mean tracked position and the reference shape's frame.
+/// The training data's mean tracked position and the reference shape's frame, with the
+/// training data's grasp lag ([`grasp_lag`]).
 pub fn material_frame(train: &[Scene]) -> Result<MaterialFrame, GapError> {
     let first = train.first().ok_or(GapError::NoScenes("training"))?;
     let (mut sum, mut count) = (Vec3::ZERO, 0usize);
@@ -539,7 +540,69 @@ pub fn material_frame(train: &[Scene]) -> Result<MaterialFrame, GapError> {
             count += 1;
         }
     }
-    MaterialFrame::new(&first.init.x[..first.tracked], sum / count.max(1) as f32)
+    Ok(
+        MaterialFrame::new(&first.init.x[..first.tracked], sum / count.max(1) as f32)?
+            .with_lag(grasp_lag(train)),
+    )
+}
+
+/// Each tracked particle's *grasp lag* over the training windows, scaled to [−1, 1]: its mean
+/// distance (over the steps at which it is seen) from where it would be had it moved rigidly
+/// with the grippers' mean translation since the window's start. Parts that move with the
+/// grippers score −1, the part that sags and trails them most +1. It needs the data alone,
+/// so a model carrying an effect built on it rebuilds the same coordinate from its dataset.
+/// `None` when no window shares the first one's tracked count or the lags do not spread (by
+/// less than 1 µm); a particle never seen takes the mean lag.
+///
+/// ```
+/// // No training windows, no lag (the crate's tests build windows that have one).
+/// assert!(gap::grasp_lag(&[]).is_none());
+/// ```
+pub fn grasp_lag(train: &[Scene]) -> Option<Vec<f32>> {
+    let n = train.first()?.tracked;
+    let (mut sum, mut seen) = (vec![0.0f64; n], vec![0usize; n]);
+    let mean_gripper = |a: &springs::Actions, f: usize| -> Option<Vec3> {
+        let frame = a.frame(f)?;
+        let g = frame.positions.len();
+        (g > 0).then(|| frame.positions.iter().copied().sum::<Vec3>() / g as f32)
+    };
+    for s in train.iter().filter(|s| s.tracked == n) {
+        let g0 = mean_gripper(&s.actions, 0).unwrap_or(Vec3::ZERO);
+        for (t, (truth, visible)) in s.truth.iter().zip(&s.visible).enumerate() {
+            let shift = mean_gripper(&s.actions, t + 1).map_or(Vec3::ZERO, |g| g - g0);
+            for i in 0..n.min(truth.len()).min(visible.len()) {
+                if visible[i] {
+                    let rigid = s.init.x[i] + shift;
+                    sum[i] += f64::from(truth[i].distance(rigid));
+                    seen[i] += 1;
+                }
+            }
+        }
+    }
+    let total: f64 = sum.iter().sum();
+    let count: usize = seen.iter().sum();
+    if count == 0 {
+        return None;
+    }
+    let fallback = total / count as f64;
+    let lag: Vec<f64> = sum
+        .iter()
+        .zip(&seen)
+        .map(|(s, c)| if *c > 0 { s / *c as f64 } else { fallback })
+        .collect();
+    let (lo, hi) = lag
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), v| {
+            (lo.min(*v), hi.max(*v))
+        });
+    if hi - lo <= 1e-6 || (hi - lo).is_nan() {
+        return None;
+    }
+    Some(
+        lag.iter()
+            .map(|v| (2.0 * (v - lo) / (hi - lo) - 1.0) as f32)
+            .collect(),
+    )
 }
 
 /// Diagnoses the gap of the fitted backbone `base` on `train` / `val` scenes. `progress` gets

@@ -116,25 +116,49 @@ impl Effect for QuadraticDrag {
     }
 }
 
-/// Per-spring stiffness `k_s = k exp(a ū_s)`, `ū_s` the mean material coordinate of the
-/// spring's ends (`u ∈ [−1, 1]` along the rest shape's principal axis).
+/// Per-spring stiffness `k_s = k exp(a ū_s) exp(e λ̄_s − |e|)`, `ū_s` the mean material
+/// coordinate of the spring's ends (`u ∈ [−1, 1]` along the rest shape's principal axis) and
+/// `λ̄_s` their mean grasp lag (`λ ∈ [−1, 1]`, [`crate::grasp_lag`]; the second factor only
+/// when the frame has one). Soft material sags and trails the grippers wherever it sits on
+/// the object, which no axis can say (the sloth's limbs around its head, session 79).
 #[derive(Debug, Clone)]
 pub struct StiffnessGradient {
     /// Log-stiffness slope along the axis (0: uniform).
     pub slope: f32,
     /// Material coordinate of each tracked particle.
     pub material: Arc<Vec<f32>>,
+    /// Anchored log-stiffness slope `e` along the grasp lag: each spring's factor is also
+    /// `exp(e λ̄_s − |e|)`, so the end of the lag coordinate that stays stiffest keeps `k`
+    /// (0: no lag term).
+    pub lag_slope: f32,
+    /// Grasp-lag coordinate λ of each tracked particle in [−1, 1] (`None`: no lag term).
+    pub lag: Option<Arc<Vec<f32>>>,
 }
 
 impl Effect for StiffnessGradient {
     fn name(&self) -> &str {
-        "stiffness-heterogeneity"
+        // The candidate it stands for: `stiffness-lag` carries the lag coordinate.
+        if self.lag.is_some() || self.lag_slope != 0.0 {
+            "stiffness-lag"
+        } else {
+            "stiffness-heterogeneity"
+        }
     }
     fn setup(&mut self, model: &mut ModelSetup<'_>) -> Result<(), SimError> {
-        check_finite(self.name(), &[("slope", self.slope)])?;
+        check_finite(
+            self.name(),
+            &[("slope", self.slope), ("lag slope", self.lag_slope)],
+        )?;
         let u = material_of_all(self.name(), &self.material, model.rest_positions)?;
         for (k, [a, b]) in model.stiffness.iter_mut().zip(model.springs) {
             *k *= (self.slope * 0.5 * (u[*a as usize] + u[*b as usize])).exp();
+        }
+        if let Some(lag) = self.lag.as_deref().filter(|_| self.lag_slope != 0.0) {
+            let l = material_of_all(self.name(), lag, model.rest_positions)?;
+            let e = self.lag_slope;
+            for (k, [a, b]) in model.stiffness.iter_mut().zip(model.springs) {
+                *k *= (e * 0.5 * (l[*a as usize] + l[*b as usize]) - e.abs()).exp();
+            }
         }
         Ok(())
     }

@@ -73,7 +73,7 @@ pub use candidates::{
 };
 pub use diagnose::{
     CONTROL_EXCESS_CAUTION, ControlFit, DiagnoseConfig, Diagnosis, Heldout, HowFar, RACE_SCENES,
-    RankedEffect, TieBreak, diagnose, evaluate, material_frame,
+    RankedEffect, TieBreak, diagnose, evaluate, grasp_lag, material_frame,
 };
 pub use effort::{BudgetChoice, ESTIMATE_MARGIN, Effort, SECONDS_PER_WORK, effort};
 pub use focus::{FOCUS_SCENES, ProbeStart, ResidualFocus, focus_of_lines, residual_focus};

@@ -173,6 +173,8 @@ fn every_transposed_effect_matches_finite_differences() {
         Box::new(StiffnessGradient {
             slope: 1.5,
             material: material.clone(),
+            lag_slope: 0.0,
+            lag: None,
         }),
         Box::new(MassGradient {
             slope: 1.0,

@@ -47,7 +47,10 @@ fn params() -> SpringParams {
 }
 
 fn frame(x: &[Vec3]) -> MaterialFrame {
-    MaterialFrame::new(x, Vec3::new(0.1, 0.02, 0.05)).unwrap()
+    let f = MaterialFrame::new(x, Vec3::new(0.1, 0.02, 0.05)).unwrap();
+    // `stiffness-lag` needs a grasp lag; the axis coordinate stands in for one here.
+    let lag = f.coordinate.to_vec();
+    f.with_lag(Some(lag))
 }
 
 fn roll(effect: Option<(Candidate, Vec<f64>)>) -> Vec<Vec<Vec3>> {

@@ -77,6 +77,8 @@ fn bending_follows_a_stiffness_field_set_up_before_it() {
         Box::new(StiffnessGradient {
             slope,
             material: Arc::new(u.clone()),
+            lag_slope: 0.0,
+            lag: None,
         })
     };
     let plain = bending_rows(&mut [Box::new(BendingSprings::new(0.2))], 0);
@@ -174,4 +176,98 @@ fn bending_follows_the_compositions_spring_law() {
     // At ratio 1 the compressed springs are linear, bit for bit.
     let (linear, _) = bending_forces("bending=0.2,nonlinear-elasticity=1:1", 0.98);
     assert_eq!(linear, plain);
+}
+
+/// The strip's spring stiffness (N/m) and springs after `field` is set up on it.
+fn field_stiffness(field: StiffnessGradient) -> (Vec<f32>, Vec<[u32; 2]>) {
+    let (x, params) = strip();
+    let held = vec![-1; x.len()];
+    let bb = Backbone::with_options(
+        &x,
+        &held,
+        params,
+        SimConfig::default(),
+        BackboneOptions::default(),
+    )
+    .unwrap();
+    let springs: Vec<[u32; 2]> = bb.springs().to_vec();
+    let mut rest = bb.rest_lengths().to_vec();
+    let mut stiffness = vec![params.stiffness; springs.len()];
+    let mut damping = vec![params.damping; springs.len()];
+    let mut masses = vec![0.01; x.len()];
+    let mut field = field;
+    field
+        .setup(&mut ModelSetup {
+            rest_positions: &x,
+            held: &held,
+            params: &params,
+            springs: &springs,
+            rest_lengths: &mut rest,
+            stiffness: &mut stiffness,
+            damping: &mut damping,
+            masses: &mut masses,
+            chain: None,
+        })
+        .unwrap();
+    (stiffness, springs)
+}
+
+#[test]
+fn the_lag_term_softens_the_trailing_part_and_keeps_the_rigid_part_at_the_fitted_stiffness() {
+    let u: Vec<f32> = (0..20).map(|i| (i / 2) as f32 / 4.5 - 1.0).collect();
+    // Lag −1 on the first column pair (moves with the grippers), +1 on the last.
+    let lag = Arc::new(u.clone());
+    let field = |lag_slope, lag: Option<Arc<Vec<f32>>>| StiffnessGradient {
+        slope: 0.0,
+        material: Arc::new(u.clone()),
+        lag_slope,
+        lag,
+    };
+    let (plain, springs) = field_stiffness(field(0.0, None));
+    assert!(plain.iter().all(|k| *k == 1000.0));
+    // A zero lag slope, or no lag coordinate, leaves every spring as it was, bit for bit.
+    assert_eq!(field_stiffness(field(0.0, Some(lag.clone()))).0, plain);
+    assert_eq!(field_stiffness(field(-4.0, None)).0, plain);
+    // e = −4: factor exp(−4 λ̄ − 4), 1 where λ̄ = −1 and e^−8 where λ̄ = +1.
+    let (soft, _) = field_stiffness(field(-4.0, Some(lag.clone())));
+    for (k, [a, b]) in soft.iter().zip(&springs) {
+        let mean = 0.5 * (u[*a as usize] + u[*b as usize]);
+        let want = 1000.0 * (-4.0 * mean - 4.0f32).exp();
+        assert!(
+            (k - want).abs() <= 1e-4 * want,
+            "spring {a}-{b}: {k} vs {want}"
+        );
+    }
+    let rigid = springs
+        .iter()
+        .position(|[a, b]| u[*a as usize] == -1.0 && u[*b as usize] == -1.0)
+        .unwrap();
+    assert_eq!(soft[rigid], 1000.0);
+    // The opposite sign softens the rigid end instead, the trailing end keeping k.
+    let (stiff_trail, _) = field_stiffness(field(4.0, Some(lag)));
+    let trailing = springs
+        .iter()
+        .position(|[a, b]| u[*a as usize] == 1.0 && u[*b as usize] == 1.0)
+        .unwrap();
+    assert_eq!(stiff_trail[trailing], 1000.0);
+    assert!(stiff_trail[rigid] < 1e-3 * 1000.0);
+}
+
+#[test]
+fn the_lag_field_is_set_up_before_the_bending_it_scales() {
+    let (x, _) = strip();
+    let lag: Vec<f32> = (0..20).map(|i| (i / 2) as f32 / 4.5 - 1.0).collect();
+    let frame = MaterialFrame::new(&x, Vec3::ZERO)
+        .unwrap()
+        .with_lag(Some(lag));
+    let effects = BaseEffect::parse_list("bending=0.1,stiffness-lag=-3").unwrap();
+    let names: Vec<String> = gap::backbone_options(&effects, &frame)
+        .effects
+        .iter()
+        .map(|e| e.name().to_string())
+        .collect();
+    assert_eq!(names, ["stiffness-lag", "bending"]);
+    // The lag slope's range: e^20 at most between the two ends.
+    assert!(BaseEffect::parse_list("stiffness-lag=-10").is_ok());
+    assert!(BaseEffect::parse_list("stiffness-lag=-10.5").is_err());
 }
