@@ -357,6 +357,13 @@ pub fn read_backbone(run: &Path) -> anyhow::Result<BackboneFile> {
 pub fn read_residual(run: &Path) -> anyhow::Result<Option<residual::ResidualNet>> {
     let path = run.join("residual.safetensors");
     if !path.exists() {
+        if run.join("residual.json").exists() {
+            // A run whose weights were moved or not written yet: say which model this is.
+            eprintln!(
+                "note: {} has residual.json but no residual.safetensors; using the backbone alone",
+                run.display()
+            );
+        }
         return Ok(None);
     }
     residual::ResidualNet::load(&path)
