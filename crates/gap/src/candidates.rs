@@ -345,8 +345,8 @@ pub struct MaterialFrame {
     /// Each tracked particle's grasp lag, scaled to [−1, 1]: −1 for the part that moves most
     /// rigidly with the grippers, +1 for the part that trails them most
     /// ([`crate::grasp_lag`]). Learned from training data; `None` without it (a frame made
-    /// from one shape) or when every particle lags alike, and then the stiffness candidate's
-    /// lag slope does nothing.
+    /// from one shape) or when every particle lags alike, and then `stiffness-lag` leaves the
+    /// stiffness uniform.
     pub lag: Option<Arc<Vec<f32>>>,
     /// Mean tracked position over the training data, m (the external-field probe's centre is
     /// searched around it).

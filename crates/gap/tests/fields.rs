@@ -24,12 +24,13 @@ fn strip() -> (Vec<Vec3>, SpringParams) {
     (x, params)
 }
 
-/// The strip's plain backbone and its rest lengths after `effects` are set up on it in order.
+/// The strip's plain backbone, and its rest lengths and spring stiffness (N/m) after `effects`
+/// are set up on it in order.
 fn set_up(
     effects: &mut [Box<dyn Effect>],
     x: &[Vec3],
     params: SpringParams,
-) -> (Backbone, Vec<f32>) {
+) -> (Backbone, Vec<f32>, Vec<f32>) {
     let held = vec![-1; x.len()];
     let bb = Backbone::with_options(
         x,
@@ -58,13 +59,13 @@ fn set_up(
         })
         .unwrap();
     }
-    (bb, rest)
+    (bb, rest, stiffness)
 }
 
 /// Each particle's bending row in the stability bound after `effects` are set up in order.
 fn bending_rows(effects: &mut [Box<dyn Effect>], bending_at: usize) -> Vec<f32> {
     let (x, params) = strip();
-    let (bb, _) = set_up(effects, &x, params);
+    let (bb, _, _) = set_up(effects, &x, params);
     let (mut row, mut d) = (vec![0.0; x.len()], vec![0.0; x.len()]);
     effects[bending_at].stability(&bb, &mut row, &mut d);
     row
@@ -120,7 +121,7 @@ fn bending_forces(list: &str, stretch: f32) -> (Vec<Vec3A>, Vec<f32>) {
     let (x, params) = strip();
     let frame = MaterialFrame::new(&x, Vec3::ZERO).unwrap();
     let mut effects = gap::backbone_options(&BaseEffect::parse_list(list).unwrap(), &frame).effects;
-    let (bb, rest) = set_up(&mut effects, &x, params);
+    let (bb, rest, _) = set_up(&mut effects, &x, params);
     let bending = effects.iter().find(|e| e.name() == "bending").unwrap();
     let moved: Vec<Vec3A> = x
         .iter()
@@ -181,35 +182,8 @@ fn bending_follows_the_compositions_spring_law() {
 /// The strip's spring stiffness (N/m) and springs after `field` is set up on it.
 fn field_stiffness(field: StiffnessGradient) -> (Vec<f32>, Vec<[u32; 2]>) {
     let (x, params) = strip();
-    let held = vec![-1; x.len()];
-    let bb = Backbone::with_options(
-        &x,
-        &held,
-        params,
-        SimConfig::default(),
-        BackboneOptions::default(),
-    )
-    .unwrap();
-    let springs: Vec<[u32; 2]> = bb.springs().to_vec();
-    let mut rest = bb.rest_lengths().to_vec();
-    let mut stiffness = vec![params.stiffness; springs.len()];
-    let mut damping = vec![params.damping; springs.len()];
-    let mut masses = vec![0.01; x.len()];
-    let mut field = field;
-    field
-        .setup(&mut ModelSetup {
-            rest_positions: &x,
-            held: &held,
-            params: &params,
-            springs: &springs,
-            rest_lengths: &mut rest,
-            stiffness: &mut stiffness,
-            damping: &mut damping,
-            masses: &mut masses,
-            chain: None,
-        })
-        .unwrap();
-    (stiffness, springs)
+    let (bb, _, stiffness) = set_up(&mut [Box::new(field)], &x, params);
+    (stiffness, bb.springs().to_vec())
 }
 
 #[test]
