@@ -11,7 +11,9 @@
 //!   a workless velocity term ([`forces::ExternalField`]). [`Candidate::EXTRA`] holds
 //!   candidates offered only on request (`gravity-scale`, for recordings whose gravity or
 //!   clock the backbone gets wrong; `bending-damping`, a cable's internal bending damping,
-//!   and `twist`, its torsion between clamped ends, on chain datasets). The probe is refitted from the point the backbone's
+//!   and `twist`, its torsion between clamped ends, on chain datasets; `stiffness-lag`, a
+//!   stiffness field along each point's lag behind the grippers, [`grasp_lag`]). The probe is
+//!   refitted from the point the backbone's
 //!   residuals converge on ([`residual_focus`]) and from a broad start, for
 //!   [`DiagnoseConfig::probe_factor`] times the candidates' generations, and the lower
 //!   training loss is kept.
