@@ -143,7 +143,17 @@ fn write_copy(
             continue;
         }
         let bytes = std::fs::read(&path).map_err(|e| Error::io(&path, e))?;
-        write_atomic(&out.join(entry.file_name()), &bytes)?;
+        // A listed episode is read as it is copied, so a damaged one stops the copy here
+        // rather than in whatever later reads the split.
+        let name = entry.file_name();
+        if meta
+            .episodes
+            .iter()
+            .any(|e| std::ffi::OsStr::new(&e.file) == name)
+        {
+            crate::Episode::from_bytes(&bytes, &path)?;
+        }
+        write_atomic(&out.join(name), &bytes)?;
     }
     write_index(out, meta)?;
     let count = |s| meta.episodes.iter().filter(|e| e.split == s).count();

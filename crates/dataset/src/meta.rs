@@ -156,7 +156,15 @@ impl DatasetMeta {
                 self.gripper_radius
             ));
         }
+        let mut listed: std::collections::HashMap<&str, usize> = Default::default();
         for (i, e) in self.episodes.iter().enumerate() {
+            // One file in two entries would be trained on and scored as held out at once.
+            if let Some(j) = listed.insert(e.file.as_str(), i) {
+                return bad(format!(
+                    "episode {i}: file '{}' is already listed as episode {j}",
+                    e.file
+                ));
+            }
             let p = Path::new(&e.file);
             let plain = p.components().count() == 1
                 && matches!(p.components().next(), Some(std::path::Component::Normal(_)));

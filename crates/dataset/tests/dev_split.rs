@@ -200,3 +200,16 @@ fn an_episode_stored_as_a_link_is_copied_as_its_file() {
     assert!(!copied.is_symlink(), "the copy holds the file itself");
     assert_eq!(dev.load_episode(3).unwrap(), episode(3));
 }
+
+#[test]
+fn a_damaged_episode_stops_the_copy_with_its_name_and_leaves_no_index() {
+    let base = common::tmpdir("devsplit", "damaged");
+    let src = interleaved(&base.join("src"));
+    let file = src.root.join(&src.meta.episodes[3].file);
+    let bytes = std::fs::read(&file).unwrap();
+    std::fs::write(&file, &bytes[..bytes.len() / 2]).unwrap();
+    let out = base.join("dev");
+    let err = dev_split(&src, &out, 2).unwrap_err().to_string();
+    assert!(err.contains(&src.meta.episodes[3].file), "{err}");
+    assert!(!out.join("dataset.json").exists());
+}

@@ -166,6 +166,10 @@ fn malformed_index_errors_name_the_file() {
             r#"{"format": "pgrd-dataset/1", "object": "x", "fps": 10, "gravity": [0,0,-9.81], "ground_z": null, "manipulation": "push", "gripper_radius": 0.04, "episodes": [{"file": "../secret", "split": "train"}]}"#,
             "plain file name",
         ),
+        (
+            r#"{"format": "pgrd-dataset/1", "object": "x", "fps": 10, "gravity": [0,0,-9.81], "ground_z": 0, "manipulation": "grasp", "gripper_radius": 0.04, "episodes": [{"file": "a.safetensors", "split": "train"}, {"file": "a.safetensors", "split": "val"}]}"#,
+            "already listed as episode 0",
+        ),
         ("{not json", "not a valid dataset index"),
     ];
     for (json, want) in cases {
