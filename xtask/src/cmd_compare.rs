@@ -148,6 +148,23 @@ pub struct Comparison {
     pub metrics: Vec<MetricComparison>,
 }
 
+/// A note when the two reports name different datasets (compared as the directories they
+/// name): episodes are paired by index, which pairs nothing real across two datasets unless
+/// one is a copy of the other.
+fn other_datasets(before: &EvalFile, after: &EvalFile) -> Option<String> {
+    let (a, b) = (before.dataset.as_ref()?, after.dataset.as_ref()?);
+    let same = match (std::fs::canonicalize(a), std::fs::canonicalize(b)) {
+        (Ok(x), Ok(y)) => x == y,
+        _ => a == b,
+    };
+    (!same).then(|| {
+        format!(
+            "the reports were made on different datasets ({a} and {b}); the comparison pairs \
+             their episodes by index, which is right only if one dataset is a copy of the other"
+        )
+    })
+}
+
 /// Fewer resampling units than this make the interval coarse (with k units a bootstrap has at
 /// most C(2k − 1, k) distinct resamples, 10 for k = 3), so the command says so.
 const FEW_UNITS: usize = 10;
@@ -155,6 +172,9 @@ const FEW_UNITS: usize = 10;
 pub fn run(args: &CompareArgs) -> anyhow::Result<()> {
     let before = read_eval(&args.before)?;
     let after = read_eval(&args.after)?;
+    if let Some(note) = other_datasets(&before, &after) {
+        eprintln!("note: {note}");
+    }
     let c = compare(
         &before,
         &after,
@@ -368,6 +388,22 @@ mod tests {
             diverged: Some(0),
             metrics: serde_json::Value::Null,
         }
+    }
+
+    #[test]
+    fn reports_of_two_datasets_get_a_note_and_of_one_dataset_none() {
+        let with = |d: &str| EvalFile {
+            dataset: Some(d.into()),
+            ..report("spring-mass", &[1.0], false)
+        };
+        let fixture = concat!(env!("CARGO_MANIFEST_DIR"), "/../fixtures/rope");
+        let dotted = concat!(env!("CARGO_MANIFEST_DIR"), "/../fixtures/./rope/");
+        assert!(other_datasets(&with(fixture), &with(dotted)).is_none());
+        let other = concat!(env!("CARGO_MANIFEST_DIR"), "/../fixtures/flag");
+        let note = other_datasets(&with(fixture), &with(other)).unwrap();
+        assert!(note.contains("different datasets"), "{note}");
+        // Older reports name no dataset: nothing to say.
+        assert!(other_datasets(&report("a", &[1.0], false), &with(other)).is_none());
     }
 
     #[test]
