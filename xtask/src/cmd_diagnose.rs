@@ -363,12 +363,8 @@ pub(crate) fn network_errors(
 /// `--write-run` must not replace the diagnosed run's own backbone, nor put a backbone under a
 /// network trained on another one; checked before the diagnosis runs.
 pub(crate) fn check_write_run(dir: &Path, run: &Path) -> anyhow::Result<()> {
-    let same = match (std::fs::canonicalize(dir), std::fs::canonicalize(run)) {
-        (Ok(a), Ok(b)) => a == b,
-        _ => false,
-    };
     anyhow::ensure!(
-        !same,
+        !crate::common::same_directory(dir, run),
         "--write-run {} is the diagnosed run itself; name a new directory",
         dir.display()
     );

@@ -63,16 +63,8 @@ pub struct RefineArgs {
 /// Runs the refinement and writes `<out>/backbone.json`.
 pub fn run(args: &RefineArgs) -> anyhow::Result<()> {
     let t0 = Instant::now();
-    // Compared as the directories they name (`runs/a/` and `./runs/a` are one run).
-    let same = match (
-        std::fs::canonicalize(&args.out),
-        std::fs::canonicalize(&args.run),
-    ) {
-        (Ok(a), Ok(b)) => a == b,
-        _ => args.out == args.run,
-    };
     anyhow::ensure!(
-        !same,
+        !crate::common::same_directory(&args.out, &args.run),
         "--out must be a new run directory, not the fitted run"
     );
     anyhow::ensure!(
@@ -211,7 +203,7 @@ mod tests {
                 ],
             )
             .unwrap();
-            let err = run_err(&args);
+            let err = super::run(&args).expect_err("refused").to_string();
             assert!(
                 err.contains("not the fitted run"),
                 "{}: {err}",
@@ -219,12 +211,5 @@ mod tests {
             );
         }
         std::fs::remove_dir_all(&run).ok();
-    }
-
-    fn run_err(args: &RefineArgs) -> String {
-        match super::run(args) {
-            Ok(()) => "ran".into(),
-            Err(e) => e.to_string(),
-        }
     }
 }

@@ -457,6 +457,15 @@ pub fn parse_command<T: clap::Args>(command: &str, args: &[String]) -> anyhow::R
     Ok(parsed.args)
 }
 
+/// Whether two paths name one directory (`runs/a/` and `./runs/a` do); paths that cannot be
+/// resolved (not there yet) are compared as written.
+pub fn same_directory(a: &Path, b: &Path) -> bool {
+    match (std::fs::canonicalize(a), std::fs::canonicalize(b)) {
+        (Ok(x), Ok(y)) => x == y,
+        _ => a == b,
+    }
+}
+
 /// `--…-min(utes)` values: finite and >= 0 (a NaN or negative budget would silently mean
 /// "none" or "stop at once").
 pub fn parse_minutes(text: &str) -> Result<f64, String> {
