@@ -1,4 +1,4 @@
-//! `cargo xtask import deform <DIR> --out <DATASET>`, `cargo xtask dev-split` and
+//! `cargo xtask import deform|phystwin <DIR> --out <DATASET>`, `cargo xtask dev-split` and
 //! `cargo xtask merge`.
 
 use std::path::PathBuf;
@@ -11,7 +11,8 @@ pub struct ImportArgs {
     /// Source format.
     #[arg(value_enum)]
     format: SourceFormat,
-    /// Source directory (for `deform`: a DLOk folder holding train/ and eval/).
+    /// Source (for `deform`: a DLOk folder holding train/ and eval/; for `phystwin`: a case
+    /// folder holding final_data.pkl and split.json, or the pickle itself).
     dir: PathBuf,
     /// Output dataset directory. One that already holds files is refused unless
     /// `--overwrite` is given; the dataset is written beside it and moved into place only
@@ -21,18 +22,54 @@ pub struct ImportArgs {
     /// Replace an existing dataset at `--out` (once the new one is complete).
     #[arg(long)]
     overwrite: bool,
+    /// `phystwin`: keep every N-th frame (default 3: PhysTwin's 30 fps to the paper's 10).
+    #[arg(long)]
+    every: Option<usize>,
+    /// `phystwin`: kept frames per episode (default 40: the paper's 4 s at 10 fps).
+    #[arg(long)]
+    episode_frames: Option<usize>,
+    /// `phystwin`: kept frames between consecutive episodes' starts (default 20: 2 s).
+    #[arg(long)]
+    stride_frames: Option<usize>,
+    /// `phystwin`: how the controller points act on the object (default grasp).
+    #[arg(long, value_enum)]
+    manipulation: Option<ManipulationArg>,
+    /// `phystwin`: radius within which a controller point holds (grasp) or pushes object
+    /// points, m (default 0.02).
+    #[arg(long)]
+    gripper_radius: Option<f32>,
+}
+
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum ManipulationArg {
+    /// Object points near a controller point at an episode's start follow it rigidly.
+    Grasp,
+    /// Controller points are spheres that push object points.
+    Push,
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]
 enum SourceFormat {
     /// DEFORM cable recordings (pickled [frames][3][markers] lists, 100 Hz).
     Deform,
+    /// PhysTwin's processed captures (final_data.pkl: a pickled dict of numpy arrays, 30 fps).
+    Phystwin,
 }
 
 /// Runs the import and prints a one-line summary per split.
 pub fn run(args: &ImportArgs) -> anyhow::Result<()> {
     match args.format {
         SourceFormat::Deform => {
+            let phystwin_only = args.every.is_some()
+                || args.episode_frames.is_some()
+                || args.stride_frames.is_some()
+                || args.manipulation.is_some()
+                || args.gripper_radius.is_some();
+            anyhow::ensure!(
+                !phystwin_only,
+                "--every, --episode-frames, --stride-frames, --manipulation and --gripper-radius \
+                 apply to `import phystwin` only (DEFORM's files are whole episodes already)"
+            );
             let t0 = std::time::Instant::now();
             let staged = crate::staged::StagedDir::new(&args.out, args.overwrite)?;
             let report = dataset::import::deform::import(&args.dir, staged.path())
@@ -49,7 +86,54 @@ pub fn run(args: &ImportArgs) -> anyhow::Result<()> {
                 t0.elapsed().as_secs_f64()
             );
         }
+        SourceFormat::Phystwin => import_phystwin(args)?,
     }
+    Ok(())
+}
+
+fn import_phystwin(args: &ImportArgs) -> anyhow::Result<()> {
+    use dataset::import::phystwin::{self, PhysTwinOptions};
+    let t0 = std::time::Instant::now();
+    let d = PhysTwinOptions::default();
+    let opts = PhysTwinOptions {
+        every: args.every.unwrap_or(d.every),
+        episode_frames: args.episode_frames.unwrap_or(d.episode_frames),
+        stride_frames: args.stride_frames.unwrap_or(d.stride_frames),
+        manipulation: match args.manipulation {
+            None => d.manipulation,
+            Some(ManipulationArg::Grasp) => dataset::Manipulation::Grasp,
+            Some(ManipulationArg::Push) => dataset::Manipulation::Push,
+        },
+        gripper_radius_m: args.gripper_radius.unwrap_or(d.gripper_radius_m),
+        ..d
+    };
+    anyhow::ensure!(
+        opts.gripper_radius_m.is_finite() && opts.gripper_radius_m >= 0.0,
+        "--gripper-radius must be a finite number of metres >= 0, got {}",
+        opts.gripper_radius_m
+    );
+    let staged = crate::staged::StagedDir::new(&args.out, args.overwrite)?;
+    let report = phystwin::import(&args.dir, staged.path(), &opts)
+        .with_context(|| format!("importing PhysTwin data from {}", args.dir.display()))?;
+    staged.commit()?;
+    let count = |s| report.episodes.iter().filter(|e| e.split == s).count();
+    println!(
+        "imported {}: {} frames, {} points ({} never seen, left out), {} controller points; {}; \
+         {} train + {} val episodes of {} frames at {} fps, {:.0} % of points seen -> {} ({:.1} s)",
+        report.object,
+        report.frames,
+        report.points,
+        report.never_seen,
+        report.controllers,
+        report.split,
+        count(dataset::Split::Train),
+        count(dataset::Split::Val),
+        report.episode_frames,
+        opts.source_fps / opts.every as f32,
+        100.0 * report.seen_fraction,
+        args.out.display(),
+        t0.elapsed().as_secs_f64()
+    );
     Ok(())
 }
 

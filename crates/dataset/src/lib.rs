@@ -8,7 +8,8 @@
 //!   episode and validates shapes, finiteness and index ranges. Every error names the file.
 //! - [`DatasetWriter`] writes episodes and the index atomically (temporary file, then rename),
 //!   into a new dataset or after an existing one's episodes ([`DatasetWriter::append`]).
-//! - [`import`] converts other formats (the DEFORM cable pickles) into this one.
+//! - [`import`] converts other formats (the DEFORM cable pickles, PhysTwin's captures) into
+//!   this one.
 //! - [`dev_split`] copies a dataset with its last training episodes as `val` and its `val` as
 //!   `test`, so models can be chosen on training recordings and scored once on the rest;
 //!   [`select_split`] keeps the last `val` recordings as `val` (a selection set) and moves the
