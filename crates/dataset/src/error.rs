@@ -4,12 +4,13 @@ use std::path::PathBuf;
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
     /// The file could not be read or written.
-    #[error("{path}: {source}")]
+    #[error("{path}: {cause}")]
     Io {
         /// The file.
         path: PathBuf,
-        /// The underlying error.
-        source: std::io::Error,
+        /// The underlying error. Part of the message, so not its `source()`: a chain of causes would
+        /// repeat it.
+        cause: std::io::Error,
     },
     /// The file was read but its content breaks the format contract.
     #[error("{path}: {message}")]
@@ -25,7 +26,7 @@ impl Error {
     pub(crate) fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
         Error::Io {
             path: path.into(),
-            source,
+            cause: source,
         }
     }
 
@@ -49,7 +50,20 @@ impl Error {
     pub(crate) fn at(self, path: impl Into<PathBuf>) -> Self {
         match self {
             Error::Invalid { message, .. } => Error::invalid(path, message),
-            Error::Io { source, .. } => Error::io(path, source),
+            Error::Io { cause, .. } => Error::io(path, cause),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn an_io_error_is_told_once() {
+        let e = Error::io("data/x.json", std::io::Error::other("boom"));
+        assert_eq!(e.to_string(), "data/x.json: boom");
+        // Its cause is in the message, so a report of the chain of causes does not repeat it.
+        assert!(std::error::Error::source(&e).is_none());
     }
 }

@@ -140,7 +140,7 @@ pub struct Contender {
 pub enum FitError {
     /// The optimiser refused its configuration or state.
     #[error("CMA-ES: {0}")]
-    Cmaes(#[from] cmaes::Error),
+    Cmaes(cmaes::Error),
     /// There is nothing to fit to.
     #[error("no training scenes to fit to")]
     NoScenes,
@@ -161,6 +161,14 @@ pub enum FitError {
     /// The simulator refused a model or failed a step.
     #[error(transparent)]
     Sim(#[from] springs::SimError),
+}
+
+// The wrapped error is part of the message, not its source: a report printing the chain of
+// causes would otherwise repeat its text.
+impl From<cmaes::Error> for FitError {
+    fn from(e: cmaes::Error) -> Self {
+        FitError::Cmaes(e)
+    }
 }
 
 #[derive(Serialize, Deserialize)]

@@ -104,11 +104,29 @@ pub enum GapError {
     },
     /// A refit failed.
     #[error("refit: {0}")]
-    Fit(#[from] fit::FitError),
+    Fit(fit::FitError),
     /// A parameter set was refused.
     #[error("CMA-ES parameters: {0}")]
-    Cmaes(#[from] cmaes::Error),
+    Cmaes(cmaes::Error),
     /// Building a scene or scoring failed.
     #[error("scene: {0}")]
-    Scene(#[from] scene::SceneError),
+    Scene(scene::SceneError),
+}
+
+// The wrapped error is part of the message, not its source: a report printing the chain of
+// causes would otherwise repeat its text.
+impl From<fit::FitError> for GapError {
+    fn from(e: fit::FitError) -> Self {
+        GapError::Fit(e)
+    }
+}
+impl From<cmaes::Error> for GapError {
+    fn from(e: cmaes::Error) -> Self {
+        GapError::Cmaes(e)
+    }
+}
+impl From<scene::SceneError> for GapError {
+    fn from(e: scene::SceneError) -> Self {
+        GapError::Scene(e)
+    }
 }

@@ -36,19 +36,21 @@ pub enum Error {
         what: String,
     },
     /// Reading or writing a file failed.
-    #[error("{path}: {source}")]
+    #[error("{path}: {cause}")]
     Io {
         /// The file.
         path: PathBuf,
-        /// The underlying error.
-        source: std::io::Error,
+        /// The underlying error. Part of the message, so not its `source()`: a chain of causes would
+        /// repeat it.
+        cause: std::io::Error,
     },
     /// PNG or GIF encoding failed.
-    #[error("{path}: encoding: {source}")]
+    #[error("{path}: encoding: {cause}")]
     Encode {
         /// The file being written.
         path: PathBuf,
-        /// The underlying error.
-        source: image::ImageError,
+        /// The underlying error. Part of the message, so not its `source()`: a chain of causes would
+        /// repeat it.
+        cause: image::ImageError,
     },
 }

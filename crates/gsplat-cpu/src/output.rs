@@ -81,7 +81,7 @@ pub fn write_png(path: impl AsRef<Path>, picture: &RgbImage) -> Result<(), Error
             )
             .map_err(|source| Error::Encode {
                 path: path.to_path_buf(),
-                source,
+                cause: source,
             })
     })
 }
@@ -107,7 +107,7 @@ pub fn write_gif(path: impl AsRef<Path>, frames: &[RgbImage], frame_ms: u32) -> 
     }
     let encode_err = |source| Error::Encode {
         path: path.to_path_buf(),
-        source,
+        cause: source,
     };
     write_atomically(path, |w| {
         let mut enc = GifEncoder::new_with_speed(w, 10);
@@ -133,7 +133,7 @@ pub(crate) fn write_atomically(
 ) -> Result<(), Error> {
     let io = |source| Error::Io {
         path: path.to_path_buf(),
-        source,
+        cause: source,
     };
     let Some(name) = path.file_name() else {
         return Err(io(std::io::Error::new(
@@ -176,7 +176,7 @@ mod tests {
         write_atomically(&path, |w| {
             w.write_all(b"old").map_err(|e| Error::Io {
                 path: path.clone(),
-                source: e,
+                cause: e,
             })
         })
         .unwrap();

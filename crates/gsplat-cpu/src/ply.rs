@@ -100,7 +100,7 @@ pub fn read_ply(path: impl AsRef<Path>) -> Result<Gaussians, Error> {
     let path = path.as_ref();
     let bytes = std::fs::read(path).map_err(|source| Error::Io {
         path: path.to_path_buf(),
-        source,
+        cause: source,
     })?;
     parse_ply(&bytes, path)
 }
@@ -282,7 +282,7 @@ pub fn write_ply(path: impl AsRef<Path>, gaussians: &Gaussians) -> Result<(), Er
     crate::output::write_atomically(path, |w| {
         w.write_all(&bytes).map_err(|source| Error::Io {
             path: PathBuf::from(path),
-            source,
+            cause: source,
         })
     })
 }

@@ -46,7 +46,15 @@ pub enum LpipsError {
     Weights(String),
     /// A candle operation failed.
     #[error("candle: {0}")]
-    Candle(#[from] candle_core::Error),
+    Candle(candle_core::Error),
+}
+
+// The wrapped error is part of the message, not its source: a report printing the chain of
+// causes would otherwise repeat its text.
+impl From<candle_core::Error> for LpipsError {
+    fn from(e: candle_core::Error) -> Self {
+        LpipsError::Candle(e)
+    }
 }
 
 /// One AlexNet convolution stage.

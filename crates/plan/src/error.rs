@@ -42,13 +42,31 @@ pub enum PlanError {
     },
     /// The backbone refused its inputs.
     #[error("backbone: {0}")]
-    Sim(#[from] springs::SimError),
+    Sim(springs::SimError),
     /// The reference world refused a command or diverged.
     #[error("reference world: {0}")]
-    World(#[from] world::Error),
+    World(world::Error),
     /// A metric could not be computed.
     #[error("metric: {0}")]
-    Metrics(#[from] metrics::MetricsError),
+    Metrics(metrics::MetricsError),
+}
+
+// The wrapped error is part of the message, not its source: a report printing the chain of
+// causes would otherwise repeat its text.
+impl From<springs::SimError> for PlanError {
+    fn from(e: springs::SimError) -> Self {
+        PlanError::Sim(e)
+    }
+}
+impl From<world::Error> for PlanError {
+    fn from(e: world::Error) -> Self {
+        PlanError::World(e)
+    }
+}
+impl From<metrics::MetricsError> for PlanError {
+    fn from(e: metrics::MetricsError) -> Self {
+        PlanError::Metrics(e)
+    }
 }
 
 /// The crate's result type.

@@ -193,7 +193,7 @@ impl ResidualNet {
         let mut value =
             serde_json::to_value(self.config()).map_err(|source| ResidualError::Json {
                 path: json.display().to_string(),
-                source,
+                cause: source,
             })?;
         if let Some(map) = value.as_object_mut() {
             map.insert(MEMBERS_KEY.into(), self.ensemble_size().into());
@@ -201,14 +201,14 @@ impl ResidualNet {
                 let rule =
                     serde_json::to_value(self.rule).map_err(|source| ResidualError::Json {
                         path: json.display().to_string(),
-                        source,
+                        cause: source,
                     })?;
                 map.insert(RULE_KEY.into(), rule);
             }
         }
         let text = serde_json::to_string_pretty(&value).map_err(|source| ResidualError::Json {
             path: json.display().to_string(),
-            source,
+            cause: source,
         })?;
         dataset::write_atomic(&json, text.as_bytes()).map_err(ResidualError::Dataset)
     }

@@ -5,31 +5,33 @@ use thiserror::Error;
 pub enum ResidualError {
     /// A tensor operation failed (shapes, I/O of safetensors).
     #[error("tensor operation: {0}")]
-    Candle(#[from] candle_core::Error),
+    Candle(candle_core::Error),
     /// The physics backbone refused a step.
     #[error("backbone: {0}")]
-    Sim(#[from] springs::SimError),
+    Sim(springs::SimError),
     /// Building a scene failed.
     #[error("scene: {0}")]
-    Scene(#[from] scene::SceneError),
+    Scene(scene::SceneError),
     /// Reading the dataset failed.
     #[error("dataset: {0}")]
-    Dataset(#[from] dataset::Error),
+    Dataset(dataset::Error),
     /// Reading or writing a file failed.
-    #[error("{path}: {source}")]
+    #[error("{path}: {cause}")]
     Io {
         /// The file.
         path: String,
-        /// The cause.
-        source: std::io::Error,
+        /// The cause. Part of the message, so not its `source()`: a chain of causes would
+        /// repeat it.
+        cause: std::io::Error,
     },
     /// A JSON file could not be parsed or written.
-    #[error("{path}: {source}")]
+    #[error("{path}: {cause}")]
     Json {
         /// The file.
         path: String,
-        /// The cause.
-        source: serde_json::Error,
+        /// The cause. Part of the message, so not its `source()`: a chain of causes would
+        /// repeat it.
+        cause: serde_json::Error,
     },
     /// A configuration value is out of range.
     #[error("invalid configuration: {0}")]
@@ -45,6 +47,29 @@ pub enum ResidualError {
         /// What was observed.
         what: String,
     },
+}
+
+// The wrapped error is part of the message, not its source: a report printing the chain of
+// causes would otherwise repeat its text.
+impl From<candle_core::Error> for ResidualError {
+    fn from(e: candle_core::Error) -> Self {
+        ResidualError::Candle(e)
+    }
+}
+impl From<springs::SimError> for ResidualError {
+    fn from(e: springs::SimError) -> Self {
+        ResidualError::Sim(e)
+    }
+}
+impl From<scene::SceneError> for ResidualError {
+    fn from(e: scene::SceneError) -> Self {
+        ResidualError::Scene(e)
+    }
+}
+impl From<dataset::Error> for ResidualError {
+    fn from(e: dataset::Error) -> Self {
+        ResidualError::Dataset(e)
+    }
 }
 
 /// Result alias of this crate.

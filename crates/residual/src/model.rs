@@ -394,7 +394,7 @@ impl ResidualNet {
         let text =
             serde_json::to_string_pretty(&self.cfg).map_err(|source| ResidualError::Json {
                 path: json.display().to_string(),
-                source,
+                cause: source,
             })?;
         dataset::write_atomic(&json, text.as_bytes()).map_err(ResidualError::Dataset)?;
         Ok(())
@@ -405,12 +405,12 @@ impl ResidualNet {
         let json = path.with_extension("json");
         let text = std::fs::read_to_string(&json).map_err(|source| ResidualError::Io {
             path: json.display().to_string(),
-            source,
+            cause: source,
         })?;
         let (cfg, saved) =
             crate::ensemble::parse_saved_config(&text).map_err(|source| ResidualError::Json {
                 path: json.display().to_string(),
-                source,
+                cause: source,
             })?;
         if saved.members != 1 {
             return Self::load_ensemble(path, &cfg, saved.members, saved.rule);
@@ -616,7 +616,7 @@ pub(crate) fn save_tensors_atomic(
     candle_core::safetensors::save(tensors, &tmp)?;
     std::fs::rename(&tmp, path).map_err(|source| ResidualError::Io {
         path: path.display().to_string(),
-        source,
+        cause: source,
     })
 }
 

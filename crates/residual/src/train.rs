@@ -818,12 +818,12 @@ impl Trainer {
         let json = path.with_extension("json");
         let text = std::fs::read_to_string(&json).map_err(|source| ResidualError::Io {
             path: json.display().to_string(),
-            source,
+            cause: source,
         })?;
         let v: serde_json::Value =
             serde_json::from_str(&text).map_err(|source| ResidualError::Json {
                 path: json.display().to_string(),
-                source,
+                cause: source,
             })?;
         self.step = v["step"].as_u64().unwrap_or(0) as usize;
         Ok(())

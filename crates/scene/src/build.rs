@@ -201,7 +201,13 @@ impl Scene {
                 v.extend(hv);
             }
             Structure::Volume if config.fill_volume => {
-                let spacing = config.fill_spacing_factor * median_spacing(&x);
+                let median = median_spacing(&x);
+                if median.is_nan() || median <= 0.0 {
+                    return Err(SceneError::CollapsedVolume {
+                        frame: window.start,
+                    });
+                }
+                let spacing = config.fill_spacing_factor * median;
                 let interior = springs::fill_interior(&x, spacing)?;
                 let iv = interior
                     .iter()
@@ -576,6 +582,30 @@ mod tests {
         assert_eq!(stale.init.x[1], Vec3::new(0.02, 0.0, 0.11));
         assert_eq!(stale.init.v[1], Vec3::ZERO);
         assert_eq!(stale.start_frame(&episode, 3), episode.frame(3).to_vec());
+    }
+
+    #[test]
+    fn a_volume_collapsed_to_one_point_is_refused_by_name() {
+        let mut meta = DatasetMeta::new("blob", 10.0, dataset::Manipulation::Grasp);
+        meta.structure = Structure::Volume;
+        let episode = Episode::new(
+            3,
+            8,
+            1,
+            vec![Vec3::new(0.1, 0.1, 0.1); 24],
+            vec![Vec3::splat(0.5); 3],
+        )
+        .unwrap();
+        let window = Window { start: 1, steps: 1 };
+        let err = Scene::new(&meta, &episode, window, &SceneConfig::default()).unwrap_err();
+        assert!(
+            matches!(err, SceneError::CollapsedVolume { frame: 1 }),
+            "{err}"
+        );
+        // Spread out, the same points fill.
+        let spread = (0..24).map(|k| Vec3::new(0.02 * (k % 8) as f32, 0.02 * (k % 2) as f32, 0.1));
+        let episode = Episode::new(3, 8, 1, spread.collect(), vec![Vec3::splat(0.5); 3]).unwrap();
+        assert!(Scene::new(&meta, &episode, window, &SceneConfig::default()).is_ok());
     }
 
     /// Three points in a row 1 cm apart rising 1 cm per frame, over `frames` frames; point 2 is

@@ -6,10 +6,10 @@ pub enum SceneError {
     Dataset(#[from] dataset::Error),
     /// The simulator refused the input or the rollout diverged.
     #[error("simulation: {0}")]
-    Sim(#[from] springs::SimError),
+    Sim(springs::SimError),
     /// A metric could not be computed.
     #[error("metrics: {0}")]
-    Metrics(#[from] metrics::MetricsError),
+    Metrics(metrics::MetricsError),
     /// The episode is too short for the protocol.
     #[error("episode has {frames} frames; the {protocol} protocol needs at least {needed}")]
     TooShort {
@@ -41,6 +41,16 @@ pub enum SceneError {
         /// The dataset's directory.
         dataset: String,
     },
+    /// A `volume` dataset whose tracked points sit on top of one another at the start frame.
+    #[error(
+        "structure `volume`: at frame {frame} most tracked points lie on top of one another \
+         (the median distance to the nearest other point is 0), so no interior spacing follows \
+         from them; check the tracking, or declare the dataset's structure `points`"
+    )]
+    CollapsedVolume {
+        /// The start frame.
+        frame: usize,
+    },
     /// The prediction does not match the scene's window.
     #[error("prediction has {got} steps of {particles} particles, expected {steps} steps")]
     PredictionShape {
@@ -51,4 +61,37 @@ pub enum SceneError {
         /// Particles per step given in the first step.
         particles: usize,
     },
+}
+
+// The wrapped error is part of the message, not its source: a report printing the chain of
+// causes would otherwise repeat its text.
+impl From<springs::SimError> for SceneError {
+    fn from(e: springs::SimError) -> Self {
+        SceneError::Sim(e)
+    }
+}
+impl From<metrics::MetricsError> for SceneError {
+    fn from(e: metrics::MetricsError) -> Self {
+        SceneError::Metrics(e)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_wrapped_error_is_told_once() {
+        let sim = springs::SimError::InvalidParameter {
+            name: "spacing_m",
+            value: 0.0,
+            reason: "must be finite and > 0",
+        };
+        let e = SceneError::from(sim);
+        assert_eq!(
+            e.to_string(),
+            "simulation: invalid spacing_m = 0: must be finite and > 0"
+        );
+        assert!(std::error::Error::source(&e).is_none());
+    }
 }
