@@ -339,7 +339,9 @@ pub(crate) fn network_errors(
     )?;
     let mde = |scene: &Scene, pred: &[Vec<glam::Vec3>]| -> anyhow::Result<f64> {
         let e = scene::score_steps(scene, pred, false)?;
-        Ok(100.0 * e.iter().map(|x| x.mde).sum::<f64>() / e.len().max(1) as f64)
+        // An episode the tracker saw nothing of scores 0 for both models.
+        let (sum, n) = scene::sum_over_steps(&e, |x| x.mde);
+        Ok(100.0 * sum / n.max(1) as f64)
     };
     let rows: Vec<anyhow::Result<(f64, f64)>> = val
         .par_iter()

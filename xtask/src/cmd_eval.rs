@@ -131,8 +131,14 @@ pub struct EvalReport {
     pub wall_s: f64,
 }
 
-fn summary(curves: &[Vec<f64>], convention: &'static str) -> anyhow::Result<(Summary, Vec<f64>)> {
-    let agg = RolloutAggregate::from_per_episode_curves(curves)?.scaled(100.0);
+/// The paper's aggregate of per-episode curves, cm; a step an episode has no score at (the
+/// tracker saw nothing there) is left to the other episodes, and a step none has is NaN
+/// (`null` in the JSON).
+fn summary(
+    curves: &[Vec<Option<f64>>],
+    convention: &'static str,
+) -> anyhow::Result<(Summary, Vec<f64>)> {
+    let agg = RolloutAggregate::from_per_episode_curves_with_gaps(curves)?.scaled(100.0);
     Ok((
         Summary {
             mean: agg.mean,
@@ -212,7 +218,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
     };
     let t_roll = Instant::now();
     type Scored<'a> = (
-        Vec<StepErrors>,
+        Vec<Option<StepErrors>>,
         f64,
         (usize, &'a scene::Scene, Vec<Vec<glam::Vec3>>),
     );
@@ -259,6 +265,11 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
     let mut diverged = 0;
     for r in results {
         match r {
+            Ok(v) if v.0.iter().all(Option::is_none) => eprintln!(
+                "warning: episode {}: the tracker saw no tracked point in any predicted frame; \
+                 not scored",
+                (v.2).0
+            ),
             Ok(v) => per_episode.push(v),
             Err(e) => {
                 diverged += 1;
@@ -266,6 +277,11 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
             }
         }
     }
+    anyhow::ensure!(
+        !per_episode.is_empty() || diverged > 0,
+        "{model_name}: the tracker saw no tracked point in any predicted frame of any episode: \
+         nothing to score"
+    );
     if per_episode.is_empty() {
         let json = args.json.clone().unwrap_or_else(|| {
             args.run.join(format!(
@@ -292,10 +308,10 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
             json.display()
         );
     }
-    let curve = |f: fn(&StepErrors) -> f64| -> Vec<Vec<f64>> {
+    let curve = |f: fn(&StepErrors) -> f64| -> Vec<Vec<Option<f64>>> {
         per_episode
             .iter()
-            .map(|(e, _, _)| e.iter().map(f).collect())
+            .map(|(e, _, _)| e.iter().map(|s| s.as_ref().map(f)).collect())
             .collect()
     };
     let (mde, mde_steps) = summary(
@@ -378,8 +394,10 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
         1.0,
         &curves,
     )?;
-    let mean_cm = |e: &[StepErrors], f: fn(&StepErrors) -> f64| {
-        100.0 * e.iter().map(f).sum::<f64>() / e.len().max(1) as f64
+    // Every episode kept here has a scored step.
+    let mean_cm = |e: &[Option<StepErrors>], f: fn(&StepErrors) -> f64| {
+        let (sum, n) = scene::sum_over_steps(e, f);
+        100.0 * sum / n as f64
     };
     let episode_scores = per_episode
         .iter()

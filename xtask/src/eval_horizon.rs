@@ -35,7 +35,7 @@ pub fn horizon_errors(
     config: &SceneConfig,
     horizon: usize,
     model: &Predictor<'_>,
-) -> anyhow::Result<(Vec<StepErrors>, f64)> {
+) -> anyhow::Result<(Vec<Option<StepErrors>>, f64)> {
     anyhow::ensure!(
         (1..=scene.window.steps).contains(&horizon),
         "--horizon {horizon} must be between 1 and the window's {} steps",
@@ -53,6 +53,9 @@ pub fn horizon_errors(
         };
         horizon
     ];
+    // How many predictions scored each step (a start whose step the tracker saw nothing in
+    // does not).
+    let mut scored = vec![0usize; horizon];
     // Every start's scene, and its own springs where it needs them.
     let mut windows = Vec::new();
     for start in starts {
@@ -133,20 +136,30 @@ pub fn horizon_errors(
             p.truncate(at.tracked);
         }
         let errors = scene::score_steps(at, &pred, false)?;
-        for (s, e) in sum.iter_mut().zip(&errors) {
-            s.mde += e.mde;
-            s.chamfer_pred_to_gt += e.chamfer_pred_to_gt;
-            s.chamfer_gt_to_pred += e.chamfer_gt_to_pred;
+        for ((s, k), e) in sum.iter_mut().zip(&mut scored).zip(&errors) {
+            if let Some(e) = e {
+                s.mde += e.mde;
+                s.chamfer_pred_to_gt += e.chamfer_pred_to_gt;
+                s.chamfer_gt_to_pred += e.chamfer_gt_to_pred;
+                *k += 1;
+            }
         }
         l1 += scene::deform_l1(at, &pred)?;
     }
-    let n = count as f64;
-    for s in &mut sum {
-        s.mde /= n;
-        s.chamfer_pred_to_gt /= n;
-        s.chamfer_gt_to_pred /= n;
-    }
-    Ok((sum, l1 / n))
+    let mean = sum
+        .into_iter()
+        .zip(scored)
+        .map(|(mut s, k)| {
+            (k > 0).then(|| {
+                let k = k as f64;
+                s.mde /= k;
+                s.chamfer_pred_to_gt /= k;
+                s.chamfer_gt_to_pred /= k;
+                s
+            })
+        })
+        .collect();
+    Ok((mean, l1 / count as f64))
 }
 
 #[cfg(test)]

@@ -395,10 +395,9 @@ pub fn scene_gradient(
             bb.step(&mut state, from, to, &mut scratch)?;
         }
         let vis = &scene.visible[t];
-        let all = !vis.iter().any(|v| *v);
         let mut r = vec![Vec3::ZERO; tracked];
         for (i, (x, y)) in state.x[..tracked].iter().zip(&scene.truth[t]).enumerate() {
-            if all || vis[i] {
+            if vis[i] {
                 let d = *x - *y;
                 sum += f64::from(d.length_squared());
                 count += 1;

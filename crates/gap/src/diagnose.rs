@@ -376,26 +376,33 @@ fn score(
     fallback: Option<&Heldout>,
     emd: bool,
 ) -> Result<Heldout, GapError> {
-    let per: Vec<Option<Vec<scene::StepErrors>>> = val
+    let per: Vec<Option<Vec<Option<scene::StepErrors>>>> = val
         .par_iter()
         .zip(preds)
         .map(|(s, p)| p.as_ref().and_then(|p| scene::score_steps(s, p, emd).ok()))
         .collect();
     let steps = val.iter().map(|s| s.truth.len()).max().unwrap_or(0);
     let (mut mde, mut ch, mut em) = (Vec::new(), 0.0, 0.0);
-    let mut per_step = vec![0.0; steps];
+    // Per step: the sum over episodes that scored it, and their count.
+    let mut per_step = vec![(0.0, 0usize); steps];
     let mut failed = 0;
     for (k, r) in per.iter().enumerate() {
         match r {
             Some(e) => {
+                // An episode the tracker saw nothing of scores 0 for every model, so paired
+                // comparisons are unaffected.
                 let m = |f: &dyn Fn(&scene::StepErrors) -> f64| {
-                    100.0 * e.iter().map(f).sum::<f64>() / e.len().max(1) as f64
+                    let (sum, n) = scene::sum_over_steps(e, f);
+                    100.0 * sum / n.max(1) as f64
                 };
                 mde.push(m(&|x| x.mde));
                 ch += m(&|x| x.chamfer_two_sided());
                 em += m(&|x| x.emd);
                 for (s, x) in e.iter().enumerate() {
-                    per_step[s] += 100.0 * x.mde;
+                    if let Some(x) = x {
+                        per_step[s].0 += 100.0 * x.mde;
+                        per_step[s].1 += 1;
+                    }
                 }
             }
             None => {
@@ -405,7 +412,10 @@ fn score(
                 failed += 1;
                 mde.push(fb.per_episode_mde_cm[k]);
                 for (s, v) in per_step.iter_mut().zip(&fb.per_step_mde_cm) {
-                    *s += v;
+                    if v.is_finite() {
+                        s.0 += v;
+                        s.1 += 1;
+                    }
                 }
             }
         }
@@ -417,7 +427,10 @@ fn score(
         chamfer_cm: ch / ok,
         emd_cm: if emd { em / ok } else { f64::NAN },
         per_episode_mde_cm: mde,
-        per_step_mde_cm: per_step.iter().map(|v| v / n).collect(),
+        per_step_mde_cm: per_step
+            .iter()
+            .map(|(v, c)| if *c > 0 { v / *c as f64 } else { f64::NAN })
+            .collect(),
         failed,
     })
 }
@@ -503,9 +516,8 @@ fn signature_cosine(
             };
             let (mut rs, mut rr, mut ss) = (0.0, 0.0, 0.0);
             for t in 0..s.truth.len() {
-                let all = !s.visible[t].iter().any(|v| *v);
                 for i in 0..s.tracked {
-                    if all || s.visible[t][i] {
+                    if s.visible[t][i] {
                         let r = s.truth[t][i] - plain[t][i];
                         let g = on[t][i] - off[t][i];
                         if r.is_finite() && g.is_finite() {

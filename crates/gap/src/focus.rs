@@ -90,10 +90,9 @@ pub fn residual_focus(
     for (s, p) in scenes.iter().zip(predictions) {
         let Some(p) = p else { continue };
         for (t, frame) in p.iter().enumerate().take(s.truth.len()) {
-            let all = !s.visible[t].iter().any(|v| *v);
             let (mut truth, mut pred) = (Vec::new(), Vec::new());
             for (i, p) in frame.iter().enumerate().take(s.tracked) {
-                if all || s.visible[t][i] {
+                if s.visible[t][i] {
                     truth.push(s.truth[t][i]);
                     pred.push(*p);
                 }

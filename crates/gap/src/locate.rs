@@ -97,7 +97,6 @@ fn samples(
     let nb = neighbours(rest, 4);
     for (s, (p, g)) in pred.iter().zip(&scene.truth).enumerate() {
         let vis = &scene.visible[s];
-        let all = !vis.iter().any(|v| *v);
         let prev: &[Vec3] = if s == 0 { rest } else { &scene.truth[s - 1] };
         let grippers = scene
             .actions
@@ -105,7 +104,7 @@ fn samples(
             .map(|f| f.positions.to_vec())
             .unwrap_or_default();
         for i in 0..n.min(p.len()) {
-            if !(all || vis[i]) {
+            if !vis[i] {
                 continue;
             }
             let e = p[i].distance(g[i]);

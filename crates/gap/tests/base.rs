@@ -32,7 +32,8 @@ fn mde_cm(family: &CandidateFamily, real: &[f64], val: &[Scene]) -> f64 {
             let (_, options) = family.build(real);
             let pred = s.rollout(&params, &s.sim_config(), options).unwrap();
             let e = scene::score_steps(s, &pred, false).unwrap();
-            100.0 * e.iter().map(|x| x.mde).sum::<f64>() / e.len() as f64
+            let (sum, n) = scene::sum_over_steps(&e, |x| x.mde);
+            100.0 * sum / n as f64
         })
         .collect();
     per.iter().sum::<f64>() / val.len() as f64

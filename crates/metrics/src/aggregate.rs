@@ -84,6 +84,68 @@ impl RolloutAggregate {
         })
     }
 
+    /// As [`RolloutAggregate::from_per_episode_curves`], for curves with gaps: `None` where an
+    /// episode has no value at a step (e.g. the tracker saw nothing there). Each step's mean and
+    /// standard deviation are over the episodes with a value there; a step no episode has a
+    /// value at gets NaN for both and is left out of [`mean`](Self::mean) and
+    /// [`std`](Self::std). Without gaps the result equals `from_per_episode_curves`'s.
+    ///
+    /// # Errors
+    /// No episodes, unequal-length curves, a non-finite value, or no value at all.
+    pub fn from_per_episode_curves_with_gaps(
+        curves: &[Vec<Option<f64>>],
+    ) -> Result<Self, MetricsError> {
+        let bad = |m: String| Err(MetricsError::InvalidCurves(m));
+        let Some(first) = curves.first() else {
+            return bad("no episodes".into());
+        };
+        let steps = first.len();
+        for (e, c) in curves.iter().enumerate() {
+            if c.len() != steps {
+                return bad(format!(
+                    "episode {e} has {} steps, episode 0 has {steps}",
+                    c.len()
+                ));
+            }
+            if let Some(s) = c.iter().position(|x| x.is_some_and(|x| !x.is_finite())) {
+                return bad(format!("episode {e} has a non-finite value at step {s}"));
+            }
+        }
+        let at = |s: usize| curves.iter().filter_map(move |c| c[s]);
+        let per_step_mean: Vec<f64> = (0..steps)
+            .map(|s| {
+                let n = at(s).count();
+                if n == 0 {
+                    f64::NAN
+                } else {
+                    at(s).sum::<f64>() / n as f64
+                }
+            })
+            .collect();
+        let per_step_std: Vec<f64> = (0..steps)
+            .map(|s| {
+                let (m, n) = (per_step_mean[s], at(s).count());
+                if n == 0 {
+                    f64::NAN
+                } else {
+                    (at(s).map(|x| (x - m) * (x - m)).sum::<f64>() / n as f64).sqrt()
+                }
+            })
+            .collect();
+        let scored: Vec<usize> = (0..steps).filter(|s| at(*s).next().is_some()).collect();
+        if scored.is_empty() {
+            return bad("no episode has a value at any step".into());
+        }
+        let k = scored.len() as f64;
+        Ok(Self {
+            mean: scored.iter().map(|s| per_step_mean[*s]).sum::<f64>() / k,
+            std: scored.iter().map(|s| per_step_std[*s]).sum::<f64>() / k,
+            per_step_mean,
+            per_step_std,
+            episodes: curves.len(),
+        })
+    }
+
     /// Every value multiplied by `factor` (e.g. 100 for metres -> cm, as the tables report).
     pub fn scaled(&self, factor: f64) -> Self {
         Self {

@@ -44,3 +44,39 @@ fn rejects_bad_curves() {
     assert!(bad(&[vec![1.0, f64::NAN]]));
     assert!(bad(&[vec![1.0, f64::INFINITY]]));
 }
+
+#[test]
+fn gaps_leave_their_step_to_the_episodes_that_have_it() {
+    // Step 0: {1, 2, 6} as above; step 1: only {4} (two episodes saw nothing); step 2: none.
+    let curves = vec![
+        vec![Some(1.0), Some(4.0), None],
+        vec![Some(2.0), None, None],
+        vec![Some(6.0), None, None],
+    ];
+    let a = RolloutAggregate::from_per_episode_curves_with_gaps(&curves).unwrap();
+    assert_eq!(a.per_step_mean[..2], [3.0, 4.0]);
+    assert!(a.per_step_mean[2].is_nan() && a.per_step_std[2].is_nan());
+    assert_eq!(a.mean, 3.5);
+    let s0 = (14.0f64 / 3.0).sqrt();
+    assert!((a.std - s0 / 2.0).abs() < 1e-15);
+    // Without gaps, the same numbers as the plain form, bit for bit.
+    let full = vec![vec![0.013, 0.029, 0.031], vec![0.017, 0.041, 0.043]];
+    let wrapped: Vec<Vec<Option<f64>>> = full
+        .iter()
+        .map(|c| c.iter().copied().map(Some).collect())
+        .collect();
+    assert_eq!(
+        RolloutAggregate::from_per_episode_curves_with_gaps(&wrapped).unwrap(),
+        RolloutAggregate::from_per_episode_curves(&full).unwrap()
+    );
+    let bad = |c: &[Vec<Option<f64>>]| {
+        matches!(
+            RolloutAggregate::from_per_episode_curves_with_gaps(c),
+            Err(MetricsError::InvalidCurves(_))
+        )
+    };
+    assert!(bad(&[]));
+    assert!(bad(&[vec![None, None]]));
+    assert!(bad(&[vec![Some(1.0)], vec![]]));
+    assert!(bad(&[vec![Some(f64::NAN)]]));
+}

@@ -47,13 +47,12 @@ impl TrainLoss {
 }
 
 /// Loss of step `step` of `scene` given the hybrid positions `x` (metres, `N × 3`, with their
-/// graph): over the tracked particles seen at that step (all of them when none was seen).
+/// graph): over the tracked particles seen at that step (0 when none was).
 pub(crate) fn step_loss(kind: TrainLoss, scene: &Scene, step: usize, x: &Tensor) -> Result<Tensor> {
     let dev = x.device();
     let vis = &scene.visible[step];
-    let all = !vis.iter().any(|v| *v);
     let idx: Vec<u32> = (0..scene.tracked)
-        .filter(|&i| all || vis[i])
+        .filter(|&i| vis[i])
         .map(|i| i as u32)
         .collect();
     let truth: Vec<Vec3> = idx.iter().map(|&i| scene.truth[step][i as usize]).collect();

@@ -354,11 +354,10 @@ impl TrainSet {
             };
             ep.backbone.step(&mut state, from, to, &mut scratch)?;
             let seen = &base.visible[step];
-            let all = !seen.iter().any(|s| *s);
             let targets = base.truth[step].iter().zip(seen).zip(&base.held);
             for (i, ((target, &seen), &g)) in targets.enumerate() {
                 let held = g >= 0 && from.closed.get(g as usize).copied().unwrap_or(false);
-                if held || !(all || seen) {
+                if held || !seen {
                     continue;
                 }
                 let dv =

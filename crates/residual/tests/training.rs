@@ -128,9 +128,8 @@ fn mde_of(net: &ResidualNet, set: &TrainSet, samples: &[Sample], steps: usize) -
         let out = hybrid_rollout(net, set.backbone(s), &s.scene, &s.history, opts).unwrap();
         for (k, x) in out.positions.iter().enumerate() {
             let vis = &s.scene.visible[k];
-            let all = !vis.iter().any(|v| *v);
             let d: Vec<f64> = (0..s.scene.tracked)
-                .filter(|&i| all || vis[i])
+                .filter(|&i| vis[i])
                 .map(|i| f64::from((x[i] - s.scene.truth[k][i]).length()))
                 .collect();
             sum += 100.0 * d.iter().sum::<f64>() / d.len() as f64;
@@ -289,9 +288,8 @@ fn direct_mde(scenes: &[&scene::Scene], preds: &[Vec<Vec<glam::Vec3>>]) -> f64 {
         let mut sum = 0.0;
         for (k, x) in pred.iter().enumerate() {
             let vis = &scene.visible[k];
-            let all = !vis.iter().any(|v| *v);
             let d: Vec<f64> = (0..scene.tracked)
-                .filter(|&i| all || vis[i])
+                .filter(|&i| vis[i])
                 .map(|i| f64::from((x[i] - scene.truth[k][i]).length()))
                 .collect();
             sum += d.iter().sum::<f64>() / d.len() as f64;

@@ -111,7 +111,7 @@ fn main() -> Result<(), Error> {
     let episode_mde = |scene: &Scene| -> Result<f64, Error> {
         let pred = scene.rollout(&params, &scene.sim_config(), Default::default())?;
         let steps = score_steps(scene, &pred, false)?;
-        Ok(steps.iter().map(|s| s.mde).sum::<f64>() / steps.len() as f64)
+        Ok(scene::mean_over_steps(&steps, |s| s.mde).unwrap_or(0.0))
     };
     let base: Vec<f64> = scenes.iter().map(episode_mde).collect::<Result<_, _>>()?;
     let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;

@@ -28,7 +28,10 @@
 //! let scene = Scene::new(&data.meta, &episode, window, &SceneConfig::default())?;
 //! let pred = scene.rollout(&springs::SpringParams::reference_rope(), &scene.sim_config(), Default::default())?;
 //! let errors = scene::score_steps(&scene, &pred, false)?;
-//! println!("MDE after the last step: {:.2} cm", 100.0 * errors.last().unwrap().mde);
+//! // `None` at a step whose frame the tracker saw nothing in.
+//! if let Some(Some(last)) = errors.last() {
+//!     println!("MDE after the last step: {:.2} cm", 100.0 * last.mde);
+//! }
 //! # Ok(()) }
 //! ```
 
@@ -39,5 +42,7 @@ mod window;
 
 pub use build::{MATERIAL_PAIR_FACTOR, Scene, SceneConfig};
 pub use error::SceneError;
-pub use score::{StepErrors, deform_l1, position_mse, score_steps};
+pub use score::{
+    StepErrors, deform_l1, mean_over_steps, position_mse, score_steps, sum_over_steps,
+};
 pub use window::{Protocol, Window};

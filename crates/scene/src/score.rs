@@ -3,7 +3,7 @@ use glam::Vec3;
 use crate::{Scene, SceneError};
 
 /// Errors of one predicted step against the truth, m. Only particles the tracker saw at that
-/// frame count (all of them when none was seen, so a step is never skipped).
+/// frame count; a frame where it saw none is not scored ([`score_steps`] gives `None`).
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
 pub struct StepErrors {
     /// Mean distance between same-index points.
@@ -38,9 +38,7 @@ fn check(scene: &Scene, pred: &[Vec<Vec3>]) -> Result<(), SceneError> {
 
 fn seen(scene: &Scene, step: usize, pred: &[Vec3]) -> (Vec<[f32; 3]>, Vec<[f32; 3]>) {
     let vis = &scene.visible[step];
-    let all = !vis.iter().any(|v| *v);
-    let keep = |i: &usize| all || vis[*i];
-    let idx: Vec<usize> = (0..scene.tracked).filter(keep).collect();
+    let idx: Vec<usize> = (0..scene.tracked).filter(|i| vis[*i]).collect();
     let p = idx.iter().map(|i| pred[*i].to_array()).collect();
     let g = idx
         .iter()
@@ -49,20 +47,25 @@ fn seen(scene: &Scene, step: usize, pred: &[Vec3]) -> (Vec<[f32; 3]>, Vec<[f32; 
     (p, g)
 }
 
-/// Per-step errors of a prediction (`steps` × `tracked` positions, m).
+/// Per-step errors of a prediction (`steps` × `tracked` positions, m); `None` at a step whose
+/// frame the tracker saw no tracked point in (nothing to score there: its stored positions are
+/// the tracker's last reports).
 pub fn score_steps(
     scene: &Scene,
     pred: &[Vec<Vec3>],
     with_emd: bool,
-) -> Result<Vec<StepErrors>, SceneError> {
+) -> Result<Vec<Option<StepErrors>>, SceneError> {
     check(scene, pred)?;
     let mut solver = metrics::EmdSolver::new();
     pred.iter()
         .enumerate()
         .map(|(s, p)| {
             let (p, g) = seen(scene, s, p);
+            if g.is_empty() {
+                return Ok(None);
+            }
             let c = metrics::chamfer(&p, &g)?;
-            Ok(StepErrors {
+            Ok(Some(StepErrors {
                 mde: metrics::mde(&p, &g)?,
                 chamfer_pred_to_gt: c.pred_to_gt,
                 chamfer_gt_to_pred: c.gt_to_pred,
@@ -71,20 +74,39 @@ pub fn score_steps(
                 } else {
                     f64::NAN
                 },
-            })
+            }))
         })
         .collect()
 }
 
-/// Mean squared position error over all steps and seen particles, m²: the fitting loss.
+/// Mean of `f` over the scored steps of `steps` (from [`score_steps`]); `None` when no step was
+/// scored.
+pub fn mean_over_steps(
+    steps: &[Option<StepErrors>],
+    f: impl Fn(&StepErrors) -> f64,
+) -> Option<f64> {
+    let (sum, n) = sum_over_steps(steps, f);
+    (n > 0).then(|| sum / n as f64)
+}
+
+/// Sum of `f` over the scored steps of `steps`, and their number.
+pub fn sum_over_steps(
+    steps: &[Option<StepErrors>],
+    f: impl Fn(&StepErrors) -> f64,
+) -> (f64, usize) {
+    let n = steps.iter().flatten().count();
+    (steps.iter().flatten().map(f).sum::<f64>(), n)
+}
+
+/// Mean squared position error over all steps and seen particles, m²: the fitting loss (0 when
+/// nothing was seen).
 pub fn position_mse(scene: &Scene, pred: &[Vec<Vec3>]) -> Result<f64, SceneError> {
     check(scene, pred)?;
     let (mut sum, mut count) = (0.0f64, 0usize);
     for (s, p) in pred.iter().enumerate() {
         let vis = &scene.visible[s];
-        let all = !vis.iter().any(|v| *v);
         for (i, (a, b)) in p.iter().zip(&scene.truth[s]).enumerate() {
-            if all || vis[i] {
+            if vis[i] {
                 sum += f64::from(a.distance_squared(*b));
                 count += 1;
             }

@@ -51,7 +51,7 @@ fn dlo1_eval_episode_end_to_end() {
     }
     let l1 = scene::deform_l1(&scene, &pred).unwrap();
     let errors = scene::score_steps(&scene, &pred, true).unwrap();
-    let mde_mean = errors.iter().map(|e| e.mde).sum::<f64>() / errors.len() as f64;
+    let mde_mean = scene::mean_over_steps(&errors, |e| e.mde).unwrap();
     eprintln!(
         "DLO1 episode {index}: deform_l1 {l1:.4} m, mean MDE {:.2} cm",
         100.0 * mde_mean

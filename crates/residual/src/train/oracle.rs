@@ -62,7 +62,7 @@ impl TrainSet {
                     .map(|p| p[..ep.base.tracked].to_vec())
                     .collect();
                 let steps = scene::score_steps(&ep.base, &pred, false)?;
-                let mde = steps.iter().map(|s| s.mde).sum::<f64>() / steps.len().max(1) as f64;
+                let mde = scene::mean_over_steps(&steps, |s| s.mde).unwrap_or(0.0);
                 Ok((ep.index, 100.0 * mde))
             })
             .collect()
