@@ -168,7 +168,30 @@ fn bad_cases_get_clear_errors() {
         "{err}"
     );
 
-    let err = phystwin::import(&out.join("nowhere"), &out.join("e"), &small())
+    // A non-finite position where the point is not seen is replaced; where it is seen, refused.
+    let data_at = bytes
+        .windows(5)
+        .position(|w| w[0] == b'B' && w[1..] == 46080u32.to_le_bytes())
+        .expect("object_points' 120 x 16 x 3 float64 data")
+        + 5;
+    let entry = |t: usize, i: usize| data_at + 8 * (t * 16 + i) * 3;
+    let mut nan = bytes.clone();
+    nan[entry(0, 15)..entry(0, 15) + 8].copy_from_slice(&f64::NAN.to_le_bytes());
+    std::fs::remove_file(dir.join("split.json")).unwrap();
+    std::fs::write(dir.join("final_data.pkl"), &nan).unwrap();
+    let report = phystwin::import(&dir, &out.join("e"), &small()).unwrap();
+    assert_eq!(report.points, 15);
+    nan[entry(2, 0)..entry(2, 0) + 8].copy_from_slice(&f64::NAN.to_le_bytes());
+    std::fs::write(dir.join("final_data.pkl"), &nan).unwrap();
+    let err = phystwin::import(&dir, &out.join("f"), &small())
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("frame 2, point 0 is seen but not a finite"),
+        "{err}"
+    );
+
+    let err = phystwin::import(&out.join("nowhere"), &out.join("g"), &small())
         .unwrap_err()
         .to_string();
     assert!(err.contains("nowhere"), "{err}");

@@ -14,7 +14,7 @@
 //! - a point counts as seen at frame t when PhysTwin's tracker saw it there and, for t > 0,
 //!   its motion from t − 1 was valid (the mask PhysTwin's own tracking loss uses); where it is
 //!   not seen its last seen position is stored (its first, before it was first seen), as the
-//!   format asks; a point never seen is left out;
+//!   format asks, whatever the pickle holds there (zeros, NaN); a point never seen is left out;
 //! - every `every`-th frame is kept (30 fps → 10 fps by default, the paper's step);
 //! - the training and the test frames are each cut into windows of `episode_frames` kept
 //!   frames every `stride_frames` (the paper: 4 s episodes every 2 s, so neighbours overlap),
@@ -83,7 +83,7 @@ pub struct Capture {
     pub never_seen: usize,
 }
 
-/// The pickled arrays' element counts must match these shapes.
+/// The array `key` of the pickled dict, checked against `shape` (`None`: any size).
 fn shaped<'a>(
     data: &'a Value,
     key: &str,
@@ -122,24 +122,17 @@ fn shaped<'a>(
     Ok(a)
 }
 
-fn to_vec3(values: &[f64], path: &Path, key: &str) -> Result<Vec<Vec3>> {
+/// Coordinate triples as points of pgrd's frame: PhysTwin's turned 180° about x, so z is up.
+fn turned_up(values: &[f64]) -> Vec<Vec3> {
     values
         .chunks_exact(3)
-        .enumerate()
-        .map(|(k, c)| {
-            let v = Vec3::new(c[0] as f32, -(c[1] as f32), -(c[2] as f32));
-            if v.is_finite() {
-                Ok(v)
-            } else {
-                Err(Error::invalid(
-                    path,
-                    format!(
-                        "'{key}' holds a value that is not a finite 32-bit number at entry {k}"
-                    ),
-                ))
-            }
-        })
+        .map(|c| Vec3::new(c[0] as f32, -(c[1] as f32), -(c[2] as f32)))
         .collect()
+}
+
+/// The index of the first point of `points` that is not finite (as 32-bit floats) where `keep`.
+fn first_non_finite(points: &[Vec3], keep: impl Fn(usize) -> bool) -> Option<usize> {
+    (0..points.len()).find(|k| keep(*k) && !points[*k].is_finite())
 }
 
 /// Reads a PhysTwin `final_data.pkl` (see the module docs).
@@ -184,8 +177,18 @@ pub fn read_capture(path: &Path) -> Result<Capture> {
         path,
     )?
     .to_bool();
-    let raw = to_vec3(&points.to_f64(), path, "object_points")?;
-    let controller_positions = to_vec3(&ctrl.to_f64(), path, "controller_points")?;
+    let raw = turned_up(&points.to_f64());
+    let controller_positions = turned_up(&ctrl.to_f64());
+    if let Some(k) = first_non_finite(&controller_positions, |_| true) {
+        return Err(Error::invalid(
+            path,
+            format!(
+                "'controller_points' at frame {}, point {} is not a finite 32-bit number",
+                k / c,
+                k % c
+            ),
+        ));
+    }
     let colors = match data.get("object_colors") {
         None => None,
         Some(_) => {
@@ -202,6 +205,18 @@ pub fn read_capture(path: &Path) -> Result<Capture> {
     let seen_raw: Vec<bool> = (0..frames * n)
         .map(|k| visibilities[k] && (k < n || valid[k - n]))
         .collect();
+    // Where a point is not seen its stored value is replaced, so it may be anything (zeros in
+    // PhysTwin's files, NaN in some trackers').
+    if let Some(k) = first_non_finite(&raw, |k| seen_raw[k]) {
+        return Err(Error::invalid(
+            path,
+            format!(
+                "'object_points' at frame {}, point {} is seen but not a finite 32-bit number",
+                k / n,
+                k % n
+            ),
+        ));
+    }
     let kept: Vec<usize> = (0..n)
         .filter(|i| (0..frames).any(|t| seen_raw[t * n + i]))
         .collect();
