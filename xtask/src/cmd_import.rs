@@ -272,8 +272,47 @@ pub fn merge(args: &MergeArgs) -> anyhow::Result<()> {
 
 #[cfg(test)]
 mod tests {
-    use super::parse_part;
+    use super::{ImportArgs, ManipulationArg, SourceFormat, parse_part, run};
     use dataset::Split;
+
+    fn phystwin_args(out: std::path::PathBuf) -> ImportArgs {
+        ImportArgs {
+            format: SourceFormat::Phystwin,
+            dir: std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join("../fixtures/phystwin/rope_lift"),
+            out,
+            overwrite: false,
+            every: None,
+            episode_frames: Some(10),
+            stride_frames: Some(5),
+            manipulation: Some(ManipulationArg::Push),
+            gripper_radius: Some(0.03),
+        }
+    }
+
+    #[test]
+    fn import_phystwin_takes_its_options_and_deform_refuses_them() {
+        let dir = std::env::temp_dir().join(format!("pgrd-import-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        run(&phystwin_args(dir.join("pt"))).unwrap();
+        let data = dataset::Dataset::open(dir.join("pt")).unwrap();
+        assert_eq!(data.meta.manipulation, dataset::Manipulation::Push);
+        assert_eq!((data.meta.gripper_radius, data.meta.fps), (0.03, 10.0));
+        assert_eq!(data.split_indices(Split::Train).len(), 4);
+        let args = ImportArgs {
+            format: SourceFormat::Deform,
+            ..phystwin_args(dir.join("dlo"))
+        };
+        let err = format!("{:#}", run(&args).unwrap_err());
+        assert!(err.contains("apply to `import phystwin` only"), "{err}");
+        let args = ImportArgs {
+            gripper_radius: Some(f32::NAN),
+            ..phystwin_args(dir.join("nan"))
+        };
+        let err = format!("{:#}", run(&args).unwrap_err());
+        assert!(err.contains("--gripper-radius"), "{err}");
+        std::fs::remove_dir_all(&dir).ok();
+    }
 
     #[test]
     fn parts_name_a_directory_a_split_and_optionally_a_new_split() {
