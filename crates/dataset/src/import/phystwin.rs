@@ -321,7 +321,7 @@ pub struct PhysTwinReport {
     pub object: String,
     /// Frames of the capture.
     pub frames: usize,
-    /// Object points kept, and those never seen (left out).
+    /// Object points kept (seen at least once).
     pub points: usize,
     /// Object points never seen with a valid motion, left out.
     pub never_seen: usize,
