@@ -466,23 +466,17 @@ impl Machine<'_> {
                         .map_err(|_| "too many memo entries".to_string())?;
                     self.memoize(slot, at)?;
                 }
-                b'q' => {
-                    let slot = u32::from(self.take(1)?[0]);
-                    self.memoize(slot, at)?;
-                }
-                b'r' => {
-                    let b = self.take(4)?;
-                    let slot = u32::from_le_bytes([b[0], b[1], b[2], b[3]]);
-                    self.memoize(slot, at)?;
-                }
-                b'h' => {
-                    let slot = u32::from(self.take(1)?[0]);
-                    self.recall(slot, at)?;
-                }
-                b'j' => {
-                    let b = self.take(4)?;
-                    let slot = u32::from_le_bytes([b[0], b[1], b[2], b[3]]);
-                    self.recall(slot, at)?;
+                b'q' | b'r' | b'h' | b'j' => {
+                    // BINPUT and LONG_BINPUT store the top in a memo slot, BINGET and
+                    // LONG_BINGET push a slot's value again.
+                    let width = if matches!(op, b'q' | b'h') { 1 } else { 4 };
+                    let slot = u32::try_from(self.take_len(width)?)
+                        .map_err(|_| "a memo slot beyond 32 bits".to_string())?;
+                    if matches!(op, b'q' | b'r') {
+                        self.memoize(slot, at)?;
+                    } else {
+                        self.recall(slot, at)?;
+                    }
                 }
                 b'c' => {
                     let module = self.take_line()?;
