@@ -95,6 +95,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
             match data.meta.manipulation {
                 dataset::Manipulation::Grasp => "grasp",
                 dataset::Manipulation::Push => "push",
+                dataset::Manipulation::Attach => "attach",
             }
         );
         let fitted = cmd_fit::run(&FitArgs {

@@ -31,17 +31,20 @@ pub struct ImportArgs {
     /// `phystwin`: kept frames between consecutive episodes' starts (default 20: 2 s).
     #[arg(long)]
     stride_frames: Option<usize>,
-    /// `phystwin`: how the controller points act on the object (default grasp).
+    /// `phystwin`: how the controller points act on the object (default attach: joined by
+    /// springs, as in PhysTwin).
     #[arg(long, value_enum)]
     manipulation: Option<ManipulationArg>,
-    /// `phystwin`: radius within which a controller point holds (grasp) or pushes object
-    /// points, m (default 0.02).
+    /// `phystwin`: radius within which a controller point holds (grasp) or pushes (push)
+    /// object points, m (default 0.02; attach does not use it).
     #[arg(long)]
     gripper_radius: Option<f32>,
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]
 enum ManipulationArg {
+    /// Each controller point is a particle joined by springs to the object points near it.
+    Attach,
     /// Object points near a controller point at an episode's start follow it rigidly.
     Grasp,
     /// Controller points are spheres that push object points.
@@ -101,6 +104,7 @@ fn import_phystwin(args: &ImportArgs) -> anyhow::Result<()> {
         stride_frames: args.stride_frames.unwrap_or(d.stride_frames),
         manipulation: match args.manipulation {
             None => d.manipulation,
+            Some(ManipulationArg::Attach) => dataset::Manipulation::Attach,
             Some(ManipulationArg::Grasp) => dataset::Manipulation::Grasp,
             Some(ManipulationArg::Push) => dataset::Manipulation::Push,
         },

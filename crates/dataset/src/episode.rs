@@ -166,12 +166,13 @@ impl Episode {
     }
 
     /// The stored `held`, or the format's default: under `grasp`, each particle within `radius`
-    /// metres of a gripper at frame 0 is held by the nearest such gripper; under `push`, none.
+    /// metres of a gripper at frame 0 is held by the nearest such gripper; under `push` and
+    /// `attach`, none.
     pub fn held_or_default(&self, manipulation: Manipulation, radius: f32) -> Vec<i32> {
         if let Some(h) = &self.held {
             return h.clone();
         }
-        if manipulation == Manipulation::Push {
+        if manipulation != Manipulation::Grasp {
             return vec![-1; self.particles];
         }
         let grippers = self.gripper_frame(0);

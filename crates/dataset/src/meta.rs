@@ -17,6 +17,10 @@ pub enum Manipulation {
     Grasp,
     /// Non-prehensile: grippers are spheres of `gripper_radius` that push particles.
     Push,
+    /// Each gripper is a particle of the model, moving with it and joined by springs to the
+    /// object particles near it at a rollout's start (PhysTwin's controller points); no object
+    /// particle is held.
+    Attach,
 }
 
 /// Which part of an experiment an episode belongs to.

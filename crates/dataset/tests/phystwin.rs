@@ -54,7 +54,7 @@ fn a_case_becomes_overlapping_episodes_in_a_z_up_frame() {
     assert_eq!(data.meta.object, "rope_lift");
     assert_eq!(data.meta.fps, 10.0);
     assert_eq!(data.meta.ground_z, Some(0.0));
-    assert_eq!(data.meta.manipulation, Manipulation::Grasp);
+    assert_eq!(data.meta.manipulation, Manipulation::Attach);
     let train = data.split_indices(Split::Train);
     let val = data.split_indices(Split::Val);
     assert_eq!((train.len(), val.len()), (4, 1));

@@ -219,6 +219,19 @@ impl Scene {
             }
             _ => {}
         }
+        if meta.manipulation == dataset::Manipulation::Attach {
+            // Each gripper becomes a particle held by it, at its position: the backbone builds
+            // its springs to the object particles near it as between any particles.
+            let (now, before) = (
+                episode.gripper_frame(window.start),
+                episode.gripper_frame(window.start - 1),
+            );
+            for (g, (p, q)) in now.iter().zip(before).enumerate() {
+                x.push(*p);
+                v.push((*p - *q) * fps);
+                held.push(g as i32);
+            }
+        }
         let frames = window.start..=last;
         let positions = frames
             .clone()
@@ -249,7 +262,10 @@ impl Scene {
             gravity: Vec3::from_array(meta.gravity),
             ground_z: meta.ground_z,
             manipulation: match meta.manipulation {
-                dataset::Manipulation::Grasp => springs::Manipulation::Grasp,
+                // Attached grippers are held particles, which follow their gripper as under a grasp.
+                dataset::Manipulation::Grasp | dataset::Manipulation::Attach => {
+                    springs::Manipulation::Grasp
+                }
                 dataset::Manipulation::Push => springs::Manipulation::Push,
             },
             gripper_radius: meta.gripper_radius,
@@ -582,6 +598,48 @@ mod tests {
         assert_eq!(stale.init.x[1], Vec3::new(0.02, 0.0, 0.11));
         assert_eq!(stale.init.v[1], Vec3::ZERO);
         assert_eq!(stale.start_frame(&episode, 3), episode.frame(3).to_vec());
+    }
+
+    /// A row of four points 1 cm apart, 10 cm up with no ground, and one gripper 5 mm beside
+    /// its first point rising 1 cm per frame, under `manipulation`.
+    fn lifted_row(manipulation: dataset::Manipulation) -> Scene {
+        let mut meta = DatasetMeta::new("row", 10.0, manipulation);
+        meta.ground_z = None;
+        meta.gripper_radius = 0.0;
+        let positions = (0..12)
+            .flat_map(|_| (0..4).map(|i| Vec3::new(0.01 * i as f32, 0.0, 0.1)))
+            .collect();
+        let grippers = (0..12)
+            .map(|t| Vec3::new(-0.005, 0.0, 0.1 + 0.01 * t as f32))
+            .collect();
+        let episode = Episode::new(12, 4, 1, positions, grippers).unwrap();
+        let window = Window {
+            start: 1,
+            steps: 10,
+        };
+        Scene::new(&meta, &episode, window, &SceneConfig::default()).unwrap()
+    }
+
+    #[test]
+    fn an_attached_gripper_is_a_held_particle_that_pulls_through_springs() {
+        let attached = lifted_row(dataset::Manipulation::Attach);
+        assert_eq!((attached.tracked, attached.init.x.len()), (4, 5));
+        assert_eq!(attached.held, [-1, -1, -1, -1, 0]);
+        assert_eq!(attached.init.x[4], Vec3::new(-0.005, 0.0, 0.11));
+        assert!((attached.init.v[4] - 0.1 * Vec3::Z).length() < 1e-5);
+        let params = springs::SpringParams::reference_rope();
+        let rise = |scene: &Scene| {
+            let pred = scene
+                .rollout(&params, &scene.sim_config(), Default::default())
+                .unwrap();
+            pred.last().unwrap()[0].z - scene.init.x[0].z
+        };
+        // Attached, the row's first point follows the gripper up; with nothing held (a grasp of
+        // radius 0) it falls.
+        assert!(rise(&attached) > 0.05, "{}", rise(&attached));
+        let loose = lifted_row(dataset::Manipulation::Grasp);
+        assert_eq!(loose.init.x.len(), 4);
+        assert!(rise(&loose) < 0.0, "{}", rise(&loose));
     }
 
     #[test]

@@ -20,9 +20,12 @@
 //!   frames every `stride_frames` (the paper: 4 s episodes every 2 s, so neighbours overlap),
 //!   which become the `train` and the `val` episodes; PhysTwin itself scores one rollout from
 //!   frame 0 through the test frames instead;
-//! - each controller point is a gripper, always closed; under `grasp` the object points
-//!   within `gripper_radius` of one at an episode's first frame follow the nearest rigidly,
-//!   an approximation of PhysTwin's springs to its controller points.
+//! - each controller point is a gripper, always closed; by default (`attach`) each is a
+//!   particle of the model joined by springs to the object particles near it at a rollout's
+//!   start, as PhysTwin joins its controller points (there with their own radius, 4 cm, and
+//!   up to 50 springs each; here with the fitted threshold and spring count of the object's
+//!   springs); under `grasp` the object points within `gripper_radius` of one follow the
+//!   nearest rigidly instead, and under `push` they are spheres that push.
 
 use std::path::{Path, PathBuf};
 
@@ -44,7 +47,8 @@ pub struct PhysTwinOptions {
     pub source_fps: f32,
     /// How the controller points act on the object.
     pub manipulation: Manipulation,
-    /// Radius within which a controller point holds (or pushes) object points, m.
+    /// Radius within which a controller point holds (`grasp`) or pushes (`push`) object
+    /// points, m; unused by `attach`.
     pub gripper_radius_m: f32,
 }
 
@@ -56,7 +60,7 @@ impl Default for PhysTwinOptions {
             episode_frames: 40,
             stride_frames: 20,
             source_fps: 30.0,
-            manipulation: Manipulation::Grasp,
+            manipulation: Manipulation::Attach,
             gripper_radius_m: 0.02,
         }
     }
