@@ -500,6 +500,11 @@ fn base_model(
         m.train_mde_without_effect_cm,
         m.wall_s
     );
+    // A base model whose free particles have no spring makes every case of the object a test of
+    // a falling object, not of its effect: say so where the bench's reader looks.
+    if let Some(scene) = train.first() {
+        crate::common::warn_if_unconnected(scene, &model, Default::default())?;
+    }
     // The base model as a run's backbone file, for the networks of `--network-minutes`, and
     // as a run directory beside the data (`<object>-base`), so that any case can be diagnosed
     // again with other settings: `diagnose --data <work>/<case> --run <work>/<object>-base`.
