@@ -246,9 +246,9 @@ pub fn read_capture(path: &Path) -> Result<Capture> {
             }
             positions[t * m + j] = last;
         }
-        if let Some(c) = &colors {
+        if let Some(rgb) = &colors {
             let k = 3 * (first * n + i);
-            first_colors.push([0, 1, 2].map(|a| (c[k + a] as f32).clamp(0.0, 1.0)));
+            first_colors.push([0, 1, 2].map(|a| (rgb[k + a] as f32).clamp(0.0, 1.0)));
         }
     }
     Ok(Capture {
@@ -438,11 +438,11 @@ pub fn import(source: &Path, out: &Path, opts: &PhysTwinOptions) -> Result<PhysT
             let ts = &frames[s..s + len];
             let positions = ts
                 .iter()
-                .flat_map(|t| cap.positions[t * m..(t + 1) * m].to_vec())
+                .flat_map(|t| cap.positions[t * m..(t + 1) * m].iter().copied())
                 .collect();
             let grippers = ts
                 .iter()
-                .flat_map(|t| cap.controller_positions[t * c..(t + 1) * c].to_vec())
+                .flat_map(|t| cap.controller_positions[t * c..(t + 1) * c].iter().copied())
                 .collect();
             let visible: Vec<u8> = ts
                 .iter()
