@@ -182,7 +182,7 @@ pub struct Heldout {
     pub emd_cm: f64,
     /// Per-episode MDE, cm.
     pub per_episode_mde_cm: Vec<f64>,
-    /// Per-step MDE, mean over episodes, cm.
+    /// Per-step MDE, mean over the episodes that scored the step (NaN where none did), cm.
     #[serde(deserialize_with = "crate::nan::vec")]
     pub per_step_mde_cm: Vec<f64>,
     /// Episodes whose rollout failed (diverged); scored with the control's error.
