@@ -109,6 +109,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
             rescore_scenes: 0,
             protocol: ProtocolArg::Paper,
             bounds: BoundsArg::Reference,
+            fixed_threshold_range: false,
             substep: SubstepArg::Auto,
             material_springs: false,
             quiet: true,

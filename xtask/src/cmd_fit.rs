@@ -7,6 +7,7 @@ use anyhow::Context;
 use dataset::{Dataset, Split};
 use fit::{BackboneFamily, FitConfig};
 use indicatif::{ProgressBar, ProgressStyle};
+use scene::Scene;
 
 use crate::common::{
     BackboneFile, ProtocolArg, SceneSetting, SubstepArg, backbone_path, note_glued_springs, scenes,
@@ -47,9 +48,15 @@ pub struct FitArgs {
     /// Window of each training episode.
     #[arg(long, value_enum, default_value_t = ProtocolArg::Paper)]
     pub protocol: ProtocolArg,
-    /// Search bounds: the reference code's, or its wider set used for the paper.
+    /// Search bounds: the reference code's, or its wider set used for the paper. The
+    /// threshold's upper end is raised where the tracked points are too sparse for it to give
+    /// every free particle a spring (docs/pipelines.md, "The threshold's range").
     #[arg(long, value_enum, default_value_t = BoundsArg::Reference)]
     pub bounds: BoundsArg,
+    /// Keep `--bounds`' threshold range as it is, however sparse the points (the rule before
+    /// 2026-12-07).
+    #[arg(long)]
+    pub fixed_threshold_range: bool,
     /// How the simulator chooses its substep; recorded in backbone.json, and `eval`, `train`
     /// and `diagnose` use the run's.
     #[arg(long, value_enum, default_value_t = SubstepArg::Auto)]
@@ -93,6 +100,29 @@ impl BoundsArg {
     }
 }
 
+/// `choice`'s bounds, their threshold range widened for `scenes` unless `fixed`
+/// ([`fit::widen_threshold_range`]); says so when it widens, unless `quiet`.
+pub fn search_bounds(
+    choice: BoundsArg,
+    fixed: bool,
+    scenes: &[Scene],
+    quiet: bool,
+) -> springs::ParamBounds {
+    let bounds = choice.bounds();
+    if fixed {
+        return bounds;
+    }
+    let widened = fit::widen_threshold_range(bounds, scenes);
+    if widened != bounds && !quiet {
+        println!(
+            "threshold range widened to [{}, {:.4}] m: the tracked points are too sparse for \
+             {} m to give every free particle a spring (--fixed-threshold-range keeps it)",
+            widened.threshold[0], widened.threshold[1], bounds.threshold[1]
+        );
+    }
+    widened
+}
+
 /// Runs the fit and writes `<run>/backbone.json`.
 pub fn run(args: &FitArgs) -> anyhow::Result<BackboneFile> {
     let t0 = Instant::now();
@@ -104,7 +134,8 @@ pub fn run(args: &FitArgs) -> anyhow::Result<BackboneFile> {
     let scenes = scenes(&data, Split::Train, args.protocol.into(), setting)?;
     std::fs::create_dir_all(&args.run)
         .with_context(|| format!("creating {}", args.run.display()))?;
-    let family = BackboneFamily::new(args.bounds.bounds())?;
+    let bounds = search_bounds(args.bounds, args.fixed_threshold_range, &scenes, args.quiet);
+    let family = BackboneFamily::new(bounds)?;
     let config = FitConfig {
         population: args.population,
         generations: args.generations,
@@ -224,6 +255,7 @@ impl FitArgs {
             rescore_scenes: 0,
             protocol: ProtocolArg::Paper,
             bounds: BoundsArg::Reference,
+            fixed_threshold_range: false,
             substep: SubstepArg::Auto,
             material_springs: false,
             quiet: true,

@@ -1,5 +1,33 @@
 use cmaes::{Parameter, Parameters};
+use scene::Scene;
 use springs::{BackboneOptions, ParamBounds, SpringParams};
+
+/// How far beyond the scenes' widest free gap [`widen_threshold_range`] lets the spring
+/// threshold reach: half as far again, so that the loosest particle can have springs to more
+/// than its one nearest neighbour.
+pub const GAP_REACH: f32 = 1.5;
+
+/// `bounds` with the spring threshold's upper end raised to [`GAP_REACH`] times the scenes'
+/// widest free gap ([`Scene::widest_free_gap_m`], the median over `scenes`) where that lies
+/// beyond it; never lowered, and unchanged without scenes.
+///
+/// The reference range (up to 5 cm) suits dense point clouds. On sparse tracking, 60 points on
+/// a 40 cm flag some 4.5 cm apart, no threshold within it gives every free particle a spring,
+/// and a fit can only choose which particles fall freely (docs/pipelines.md, "The threshold's
+/// range").
+pub fn widen_threshold_range(bounds: ParamBounds, scenes: &[Scene]) -> ParamBounds {
+    let mut gaps: Vec<f32> = scenes.iter().map(Scene::widest_free_gap_m).collect();
+    gaps.sort_by(f32::total_cmp);
+    let Some(&gap) = gaps.get(gaps.len() / 2) else {
+        return bounds;
+    };
+    let reach = GAP_REACH * gap;
+    let mut out = bounds;
+    if reach.is_finite() && reach > bounds.threshold[1] {
+        out.threshold[1] = reach;
+    }
+    out
+}
 
 /// A searchable model: its parameters (with ranges and scales) and how a real vector of them
 /// becomes a backbone.

@@ -4,7 +4,9 @@
 //! rolled out on a sample of training [`scene::Scene`]s and scored by the mean squared position
 //! error over the window. A [`Family`] says which parameters are searched and how a real
 //! parameter vector becomes a backbone; [`BackboneFamily`] is the paper's five parameters.
-//! Later stages add effect parameters by implementing [`Family`].
+//! Later stages add effect parameters by implementing [`Family`]. [`widen_threshold_range`]
+//! lets the spring threshold reach past the reference range where tracked points are sparser
+//! than it assumes.
 //!
 //! - Each generation draws `samples` scenes (seeded by the run's seed and the generation), and
 //!   every candidate of that generation is scored on the same scenes, so candidates compete on
@@ -30,7 +32,7 @@ mod family;
 mod refine;
 mod run;
 
-pub use family::{BackboneFamily, Family};
+pub use family::{BackboneFamily, Family, GAP_REACH, widen_threshold_range};
 pub use refine::{
     ModelOptions, RefineConfig, RefineOutcome, RefineStep, batch_gradient, field_options,
     refine_stiffness, scene_gradient,

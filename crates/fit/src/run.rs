@@ -90,6 +90,10 @@ pub struct FitOutcome {
     pub family: String,
     /// Names of the parameters, in order.
     pub names: Vec<String>,
+    /// The box searched, `[lower, upper]` per parameter in real units, in `names`' order.
+    /// Empty in outcomes written before it was recorded (2026-12-07).
+    #[serde(default)]
+    pub ranges: Vec<[f64; 2]>,
     /// Best parameters seen (real units, integers rounded).
     pub best: Vec<f64>,
     /// Their loss, m²: on the scenes of the generation they were found in, or on the
@@ -241,6 +245,11 @@ fn outcome_mismatch(outcome: &FitOutcome, dim: usize) -> Option<String> {
         .map(|g| format!("generation {g}'s best has the wrong length"))
 }
 
+/// `[lower, upper]` of every parameter of `params`, in order.
+fn search_box(params: &cmaes::Parameters) -> Vec<[f64; 2]> {
+    params.params().iter().map(|p| [p.lower, p.upper]).collect()
+}
+
 /// Loss of one candidate on one scene: mean squared position error, or [`PENALTY`].
 pub fn scene_loss<F: Family>(family: &F, real: &[f64], scene: &Scene) -> f64 {
     let (params, options) = family.build(real);
@@ -304,6 +313,15 @@ pub fn fit<F: Family>(
                 return Err(checkpoint_error(
                     path,
                     "was written by a fit with other settings or data; remove it to start afresh",
+                ));
+            }
+            // The optimiser works in the box's normalised coordinates: on another box the
+            // same state would mean other parameters.
+            if !ck.outcome.ranges.is_empty() && ck.outcome.ranges != search_box(family.parameters())
+            {
+                return Err(checkpoint_error(
+                    path,
+                    "was written for other parameter ranges; remove it to start afresh",
                 ));
             }
             if let Some(why) = outcome_mismatch(&ck.outcome, ck.es.dim()) {
@@ -375,6 +393,7 @@ impl PausedFit {
         let outcome = FitOutcome {
             family: family.name(),
             names: params.params().iter().map(|p| p.name.clone()).collect(),
+            ranges: search_box(params),
             best: family.x0(),
             best_loss: f64::INFINITY,
             history: Vec::new(),

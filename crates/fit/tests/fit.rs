@@ -155,6 +155,15 @@ fn resumed_fit_equals_uninterrupted() {
         matches!(&r, Err(fit::FitError::Checkpoint { message, .. }) if message.contains("other settings or data")),
         "{r:?}"
     );
+    // And one searched over another box: its optimiser's coordinates mean other parameters.
+    let mut wider = springs::REFERENCE_BOUNDS;
+    wider.threshold[1] = 0.08;
+    let wider = BackboneFamily::new(wider).unwrap();
+    let r = fit(&scenes, &wider, &config, Some(&ck), &mut |_| {});
+    assert!(
+        matches!(&r, Err(fit::FitError::Checkpoint { message, .. }) if message.contains("other parameter ranges")),
+        "{r:?}"
+    );
     // A damaged checkpoint (its best cut short) is refused with a reason, not indexed past.
     let text = std::fs::read_to_string(&ck).unwrap();
     let mut json: serde_json::Value = serde_json::from_str(&text).unwrap();
@@ -177,6 +186,58 @@ fn resumed_fit_equals_uninterrupted() {
     }
     assert_eq!(resumed, whole);
     std::fs::remove_file(&ck).ok();
+}
+
+#[test]
+fn the_threshold_range_widens_only_where_points_are_too_sparse_for_it() {
+    let (_, mut scenes) = synthetic_scenes(&truth(), 3);
+    // 2 cm apart: the reference range already reaches every free particle's neighbour.
+    let bounds = springs::REFERENCE_BOUNDS;
+    assert_eq!(fit::widen_threshold_range(bounds, &scenes), bounds);
+    assert_eq!(fit::widen_threshold_range(bounds, &[]), bounds);
+    // Spread four times wider (some 8 cm apart) in two of three scenes: the range reaches half
+    // as far again as the median scene's widest gap, a spread one; nothing else moves.
+    for s in &mut scenes[..2] {
+        for x in &mut s.init.x {
+            *x *= 4.0;
+        }
+    }
+    let mut gaps: Vec<f32> = scenes.iter().map(Scene::widest_free_gap_m).collect();
+    gaps.sort_by(f32::total_cmp);
+    assert!(gaps[1] >= 0.08 && gaps[0] < 0.04, "{gaps:?}");
+    let widened = fit::widen_threshold_range(bounds, &scenes);
+    assert_eq!(
+        widened.threshold[1],
+        fit::GAP_REACH * gaps[1],
+        "{widened:?}"
+    );
+    assert_eq!(
+        springs::ParamBounds {
+            threshold: bounds.threshold,
+            ..widened
+        },
+        bounds
+    );
+    // The fit records the box it searched.
+    let family = BackboneFamily::new(widened).unwrap();
+    let config = FitConfig {
+        population: 2,
+        generations: 1,
+        samples: 1,
+        sigma0: 0.2,
+        seed: 0,
+        rescore: 0,
+        rescore_scenes: 0,
+        rescore_start: false,
+    };
+    let out = fit(&scenes, &family, &config, None, &mut |_| {}).unwrap();
+    assert_eq!(
+        out.ranges[2],
+        [
+            f64::from(bounds.threshold[0]),
+            f64::from(widened.threshold[1])
+        ]
+    );
 }
 
 #[test]

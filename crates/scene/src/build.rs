@@ -313,6 +313,14 @@ impl Scene {
         self.init.x.len()
     }
 
+    /// The widest gap around a free particle at the start frame, m: the largest distance from
+    /// a free (not held) particle to its nearest other particle. A spring threshold below it
+    /// leaves that particle without a spring, falling freely. 0 when no free particle has a
+    /// neighbour.
+    pub fn widest_free_gap_m(&self) -> f32 {
+        widest_free_gap(&self.init.x, &self.held)
+    }
+
     /// How many springs the reference construction (every pair within the threshold, the
     /// paper's) builds at this scene's start between tracked points that `pairs` says are not
     /// material neighbours: their mean distance over the training recordings exceeds
@@ -489,22 +497,36 @@ fn densify_chain(x: &[Vec3], v: &[Vec3], per_gap: usize) -> (Vec<Vec3>, Vec<Vec3
 /// The immutable tree, because kiddo's mutable one panics once more than a bucket's worth of
 /// points share one position (a tracker that reports many points at one place).
 fn median_spacing(x: &[Vec3]) -> f32 {
+    let mut d = nearest_distances(x);
+    d.sort_by(f32::total_cmp);
+    d.get(d.len() / 2).copied().unwrap_or(0.0)
+}
+
+/// [`Scene::widest_free_gap_m`] of particles at `x` held as `held`.
+fn widest_free_gap(x: &[Vec3], held: &[i32]) -> f32 {
+    nearest_distances(x)
+        .into_iter()
+        .zip(held)
+        .filter(|(_, h)| **h < 0)
+        .map(|(d, _)| d)
+        .fold(0.0, f32::max)
+}
+
+/// Distance from each point to its nearest other point, m; empty for fewer than two points.
+fn nearest_distances(x: &[Vec3]) -> Vec<f32> {
     if x.len() < 2 {
-        return 0.0;
+        return Vec::new();
     }
     let pts: Vec<[f32; 3]> = x.iter().map(|p| p.to_array()).collect();
     let tree: ImmutableKdTree<f32, u32, 3, 32> = ImmutableKdTree::new_from_slice(&pts);
     // The point itself and its nearest other point.
     let two = NonZeroUsize::new(2).expect("2 is non-zero");
-    let mut d: Vec<f32> = pts
-        .iter()
+    pts.iter()
         .map(|p| {
             let n = tree.nearest_n::<SquaredEuclidean>(p, two);
             n.get(1).map_or(0.0, |n| n.distance.sqrt())
         })
-        .collect();
-    d.sort_by(f32::total_cmp);
-    d.get(d.len() / 2).copied().unwrap_or(0.0)
+        .collect()
 }
 
 /// Mean velocity of the `k` tracked particles nearest to `p`.
@@ -874,5 +896,20 @@ mod tests {
         x.extend((0..60).map(|i| Vec3::X * (i as f32 * 0.02)));
         assert!((median_spacing(&x) - 0.02).abs() < 1e-6);
         assert_eq!(median_spacing(&x[..1]), 0.0);
+    }
+
+    #[test]
+    fn the_widest_free_gap_ignores_held_particles_and_counts_them_as_neighbours() {
+        // A 2 cm line, a free point 7 cm beyond its end, and a held point 9 cm beyond that.
+        let mut x: Vec<Vec3> = (0..5).map(|i| Vec3::X * (i as f32 * 0.02)).collect();
+        x.push(Vec3::X * 0.15);
+        x.push(Vec3::X * 0.24);
+        let mut held = vec![-1; 7];
+        held[6] = 0;
+        assert!((widest_free_gap(&x, &held) - 0.07).abs() < 1e-6);
+        // Held, the lone point no longer counts: the line's 2 cm is the widest gap left.
+        held[5] = 0;
+        assert!((widest_free_gap(&x, &held) - 0.02).abs() < 1e-6);
+        assert_eq!(widest_free_gap(&x[..1], &held[..1]), 0.0);
     }
 }

@@ -209,9 +209,14 @@ pub struct DiagnoseBenchArgs {
     /// Most base effects per object (0: diagnose against the bare backbone).
     #[arg(long, default_value_t = 2)]
     pub max_base: usize,
-    /// Search bounds of each object's backbone fit (the diagnosis refits around the result).
+    /// Search bounds of each object's backbone fit (the diagnosis refits around the result),
+    /// the threshold's range widened where the tracked points are sparse (as `fit`'s).
     #[arg(long, value_enum, default_value_t = BoundsArg::Reference)]
     pub bounds: BoundsArg,
+    /// Keep `--bounds`' threshold range as it is (as `fit --fixed-threshold-range`; the
+    /// benches before 2026-12-07).
+    #[arg(long)]
+    pub fixed_threshold_range: bool,
     /// Strength ladder: multiples of the world's default strength tried in order
     /// (comma-separated; `1` keeps the defaults).
     #[arg(long, default_value = "1,4,16,64")]
@@ -329,7 +334,12 @@ fn fit_backbone(
     train: &[Scene],
     args: &DiagnoseBenchArgs,
 ) -> anyhow::Result<(SpringParams, fit::FitOutcome, FitConfig)> {
-    let family = BackboneFamily::new(args.bounds.bounds())?;
+    let family = BackboneFamily::new(crate::cmd_fit::search_bounds(
+        args.bounds,
+        args.fixed_threshold_range,
+        train,
+        false,
+    ))?;
     let cfg = FitConfig {
         population: 8,
         generations: args.fit_generations,
