@@ -39,6 +39,18 @@ pub struct ImportArgs {
     /// object points, m (default 0.02; attach does not use it).
     #[arg(long)]
     gripper_radius: Option<f32>,
+    /// `phystwin` with attach: how far each controller point's springs reach, m (default 0.04,
+    /// PhysTwin's `controller_radius`; a case's fitted value may be given).
+    #[arg(long)]
+    controller_radius: Option<f32>,
+    /// `phystwin` with attach: most springs per controller point (default 50, PhysTwin's
+    /// `controller_max_neighbours`).
+    #[arg(long)]
+    controller_springs: Option<u32>,
+    /// `phystwin` with attach: join the controller points by the object's fitted threshold
+    /// and spring count instead of a rule of their own (pgrd before 2026-12-07).
+    #[arg(long, conflicts_with_all = ["controller_radius", "controller_springs"])]
+    controller_like_object: bool,
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]
@@ -67,11 +79,15 @@ pub fn run(args: &ImportArgs) -> anyhow::Result<()> {
                 || args.episode_frames.is_some()
                 || args.stride_frames.is_some()
                 || args.manipulation.is_some()
-                || args.gripper_radius.is_some();
+                || args.gripper_radius.is_some()
+                || args.controller_radius.is_some()
+                || args.controller_springs.is_some()
+                || args.controller_like_object;
             anyhow::ensure!(
                 !phystwin_only,
-                "--every, --episode-frames, --stride-frames, --manipulation and --gripper-radius \
-                 apply to `import phystwin` only (DEFORM's files are whole episodes already)"
+                "--every, --episode-frames, --stride-frames, --manipulation, --gripper-radius and \
+                 the --controller-* flags apply to `import phystwin` only (DEFORM's files are \
+                 whole episodes already)"
             );
             let t0 = std::time::Instant::now();
             let staged = crate::staged::StagedDir::new(&args.out, args.overwrite)?;
@@ -109,8 +125,29 @@ fn import_phystwin(args: &ImportArgs) -> anyhow::Result<()> {
             Some(ManipulationArg::Push) => dataset::Manipulation::Push,
         },
         gripper_radius_m: args.gripper_radius.unwrap_or(d.gripper_radius_m),
+        controller_springs: (!args.controller_like_object).then(|| {
+            let phystwin = dataset::ControllerSprings::PHYSTWIN;
+            dataset::ControllerSprings {
+                radius_m: args.controller_radius.unwrap_or(phystwin.radius_m),
+                max_springs: args.controller_springs.unwrap_or(phystwin.max_springs),
+            }
+        }),
         ..d
     };
+    let controller_flags = args.controller_radius.is_some()
+        || args.controller_springs.is_some()
+        || args.controller_like_object;
+    anyhow::ensure!(
+        !controller_flags || opts.manipulation == dataset::Manipulation::Attach,
+        "the --controller-* flags apply to --manipulation attach only"
+    );
+    if let Some(c) = opts.controller_springs {
+        anyhow::ensure!(
+            c.radius_m.is_finite() && c.radius_m > 0.0,
+            "--controller-radius must be a positive number of metres, got {}",
+            c.radius_m
+        );
+    }
     anyhow::ensure!(
         opts.gripper_radius_m.is_finite() && opts.gripper_radius_m >= 0.0,
         "--gripper-radius must be a finite number of metres >= 0, got {}",
@@ -138,6 +175,18 @@ fn import_phystwin(args: &ImportArgs) -> anyhow::Result<()> {
         args.out.display(),
         t0.elapsed().as_secs_f64()
     );
+    if opts.manipulation == dataset::Manipulation::Attach {
+        match opts.controller_springs {
+            Some(c) => println!(
+                "controller points join the object by their own rule: up to {} springs within \
+                 {} m each (--controller-radius, --controller-springs)",
+                c.max_springs, c.radius_m
+            ),
+            None => println!(
+                "controller points join the object by its fitted threshold and spring count"
+            ),
+        }
+    }
     Ok(())
 }
 
@@ -291,6 +340,9 @@ mod tests {
             stride_frames: Some(5),
             manipulation: Some(ManipulationArg::Push),
             gripper_radius: Some(0.03),
+            controller_radius: None,
+            controller_springs: None,
+            controller_like_object: false,
         }
     }
 
@@ -315,6 +367,25 @@ mod tests {
         };
         let err = format!("{:#}", run(&args).unwrap_err());
         assert!(err.contains("--gripper-radius"), "{err}");
+        // The controllers' own rule: for attach only, written as given.
+        let attach = |out: &str, radius| ImportArgs {
+            manipulation: Some(ManipulationArg::Attach),
+            controller_radius: radius,
+            controller_springs: Some(7),
+            ..phystwin_args(dir.join(out))
+        };
+        run(&attach("own", Some(0.025))).unwrap();
+        let data = dataset::Dataset::open(dir.join("own")).unwrap();
+        let rule = data.meta.controller_springs.unwrap();
+        assert_eq!((rule.radius_m, rule.max_springs), (0.025, 7));
+        let err = format!("{:#}", run(&attach("bad", Some(0.0))).unwrap_err());
+        assert!(err.contains("--controller-radius"), "{err}");
+        let args = ImportArgs {
+            controller_radius: Some(0.03),
+            ..phystwin_args(dir.join("push"))
+        };
+        let err = format!("{:#}", run(&args).unwrap_err());
+        assert!(err.contains("attach only"), "{err}");
         std::fs::remove_dir_all(&dir).ok();
     }
 

@@ -57,8 +57,8 @@ pub use episode::Episode;
 pub use error::Error;
 pub use merge::{MERGE_FILE, MergePart, MergeReport, merge};
 pub use meta::{
-    Dataset, DatasetMeta, DatasetWriter, EpisodeEntry, FORMAT_VERSION, Manipulation, Split,
-    Structure,
+    ControllerSprings, Dataset, DatasetMeta, DatasetWriter, EpisodeEntry, FORMAT_VERSION,
+    Manipulation, Split, Structure,
 };
 pub use neighbours::{MaterialNeighbours, PLACING_NEIGHBOURS};
 pub use occlusion::carried_frame;

@@ -183,6 +183,12 @@ fn check_compatible(reference: &DatasetMeta, data: &Dataset) -> Result<()> {
         ))
     } else if m.structure != reference.structure {
         Some(("structure", fmt(&m.structure), fmt(&reference.structure)))
+    } else if m.controller_springs != reference.controller_springs {
+        Some((
+            "controller_springs",
+            fmt(&m.controller_springs),
+            fmt(&reference.controller_springs),
+        ))
     } else {
         None
     };

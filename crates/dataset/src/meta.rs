@@ -23,6 +23,25 @@ pub enum Manipulation {
     Attach,
 }
 
+/// How an `attach` dataset's grippers (controller points) are joined to the object: each to
+/// up to `max_springs` of the nearest object particles within `radius_m` at a rollout's start,
+/// PhysTwin's `controller_radius` and `controller_max_neighbours`.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ControllerSprings {
+    /// How far a controller point reaches, m.
+    pub radius_m: f32,
+    /// Most springs one controller point gets.
+    pub max_springs: u32,
+}
+
+impl ControllerSprings {
+    /// PhysTwin's defaults: 0.04 m and 50 springs.
+    pub const PHYSTWIN: ControllerSprings = ControllerSprings {
+        radius_m: 0.04,
+        max_springs: 50,
+    };
+}
+
 /// Which part of an experiment an episode belongs to.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -103,6 +122,10 @@ pub struct DatasetMeta {
     /// Geometry hint for building the simulated object (optional, default `points`).
     #[serde(default)]
     pub structure: Structure,
+    /// `attach` only: the controller points' own spring rule. Absent, they are joined like
+    /// any particle, by the object's fitted threshold and spring count.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub controller_springs: Option<ControllerSprings>,
     /// The episodes, in order.
     pub episodes: Vec<EpisodeEntry>,
 }
@@ -128,6 +151,7 @@ impl DatasetMeta {
             manipulation,
             gripper_radius: 0.04,
             structure: Structure::Points,
+            controller_springs: None,
             episodes: Vec::new(),
         }
     }
@@ -159,6 +183,17 @@ impl DatasetMeta {
                 "gripper_radius must be a non-negative number of metres, got {}",
                 self.gripper_radius
             ));
+        }
+        if let Some(c) = self.controller_springs {
+            if self.manipulation != Manipulation::Attach {
+                return bad("controller_springs applies to manipulation 'attach' only".into());
+            }
+            if !(c.radius_m.is_finite() && c.radius_m > 0.0) {
+                return bad(format!(
+                    "controller_springs.radius_m must be a positive number of metres, got {}",
+                    c.radius_m
+                ));
+            }
         }
         let mut listed: std::collections::HashMap<&str, usize> = Default::default();
         for (i, e) in self.episodes.iter().enumerate() {

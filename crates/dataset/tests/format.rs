@@ -170,6 +170,14 @@ fn malformed_index_errors_name_the_file() {
             r#"{"format": "pgrd-dataset/1", "object": "x", "fps": 10, "gravity": [0,0,-9.81], "ground_z": 0, "manipulation": "grasp", "gripper_radius": 0.04, "episodes": [{"file": "a.safetensors", "split": "train"}, {"file": "a.safetensors", "split": "val"}]}"#,
             "already listed as episode 0",
         ),
+        (
+            r#"{"format": "pgrd-dataset/1", "object": "x", "fps": 10, "gravity": [0,0,-9.81], "ground_z": 0, "manipulation": "grasp", "gripper_radius": 0.04, "controller_springs": {"radius_m": 0.04, "max_springs": 50}, "episodes": []}"#,
+            "controller_springs applies to manipulation 'attach' only",
+        ),
+        (
+            r#"{"format": "pgrd-dataset/1", "object": "x", "fps": 10, "gravity": [0,0,-9.81], "ground_z": 0, "manipulation": "attach", "gripper_radius": 0.04, "controller_springs": {"radius_m": -1, "max_springs": 50}, "episodes": []}"#,
+            "controller_springs.radius_m must be a positive number",
+        ),
         ("{not json", "not a valid dataset index"),
     ];
     for (json, want) in cases {

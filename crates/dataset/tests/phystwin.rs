@@ -6,7 +6,7 @@ mod common;
 use std::path::{Path, PathBuf};
 
 use dataset::import::phystwin::{self, PhysTwinOptions};
-use dataset::{Dataset, Manipulation, Split};
+use dataset::{ControllerSprings, Dataset, Manipulation, Split};
 use glam::Vec3;
 
 fn case() -> PathBuf {
@@ -55,6 +55,13 @@ fn a_case_becomes_overlapping_episodes_in_a_z_up_frame() {
     assert_eq!(data.meta.fps, 10.0);
     assert_eq!(data.meta.ground_z, Some(0.0));
     assert_eq!(data.meta.manipulation, Manipulation::Attach);
+    assert_eq!(
+        data.meta.controller_springs,
+        Some(ControllerSprings {
+            radius_m: 0.04,
+            max_springs: 50
+        })
+    );
     let train = data.split_indices(Split::Train);
     let val = data.split_indices(Split::Val);
     assert_eq!((train.len(), val.len()), (4, 1));
@@ -104,6 +111,30 @@ fn a_case_becomes_overlapping_episodes_in_a_z_up_frame() {
         serde_json::from_str(&std::fs::read_to_string(out.join("data/import.json")).unwrap())
             .unwrap();
     assert_eq!(json["never_seen"], 1);
+}
+
+#[test]
+fn controller_springs_are_written_for_attach_only() {
+    let out = common::tmpdir("phystwin", "controllers");
+    let own = ControllerSprings {
+        radius_m: 0.025,
+        max_springs: 12,
+    };
+    let with = |manipulation, controller_springs| PhysTwinOptions {
+        manipulation,
+        controller_springs,
+        ..small()
+    };
+    let cases = [
+        ("own", with(Manipulation::Attach, Some(own)), Some(own)),
+        ("shared", with(Manipulation::Attach, None), None),
+        ("grasp", with(Manipulation::Grasp, Some(own)), None),
+    ];
+    for (name, opts, expected) in cases {
+        phystwin::import(&case(), &out.join(name), &opts).unwrap();
+        let data = Dataset::open(out.join(name)).unwrap();
+        assert_eq!(data.meta.controller_springs, expected, "{name}");
+    }
 }
 
 #[test]

@@ -128,6 +128,9 @@ pub struct Scene {
     material_pairs: Option<Arc<MaterialPairs>>,
     /// For a `chain` dataset with hidden particles: every particle in order along the cable.
     chain: Option<Arc<[u32]>>,
+    /// For an `attach` dataset with `controller_springs`: the grippers' particles and their
+    /// own spring rule.
+    anchors: Option<springs::AnchorSprings>,
 }
 
 /// The particles of a densified chain in order along it: marker i, then the `per_gap`
@@ -219,9 +222,17 @@ impl Scene {
             }
             _ => {}
         }
+        let mut anchors = None;
         if meta.manipulation == dataset::Manipulation::Attach {
-            // Each gripper becomes a particle held by it, at its position: the backbone builds
-            // its springs to the object particles near it as between any particles.
+            // Each gripper becomes a particle held by it, at its position: the backbone joins
+            // it to the object particles near it by the dataset's controller rule, or else as
+            // any two particles.
+            let first = x.len() as u32;
+            anchors = meta.controller_springs.map(|rule| springs::AnchorSprings {
+                particles: (first..first + episode.grippers() as u32).collect(),
+                radius_m: rule.radius_m,
+                max_springs: rule.max_springs,
+            });
             let (now, before) = (
                 episode.gripper_frame(window.start),
                 episode.gripper_frame(window.start - 1),
@@ -285,6 +296,7 @@ impl Scene {
             unseen: config.unseen.clone(),
             material_pairs: config.material_pairs.clone(),
             chain,
+            anchors,
         })
     }
 
@@ -354,7 +366,9 @@ impl Scene {
     /// only, when the scene's configuration has [`SceneConfig::material_pairs`] and `options`
     /// no filter of its own); `options` carries per-particle masses and effects (none by
     /// default). A chain scene hands its order along the cable to the effects
-    /// ([`BackboneOptions::chain`]) unless `options` has one.
+    /// ([`BackboneOptions::chain`]) unless `options` has one; an `attach` scene whose dataset
+    /// gives `controller_springs` joins its grippers' particles by that rule
+    /// ([`BackboneOptions::anchors`]) unless `options` has one.
     pub fn backbone(
         &self,
         params: &SpringParams,
@@ -370,6 +384,9 @@ impl Scene {
         }
         if options.chain.is_none() {
             options.chain = self.chain.clone();
+        }
+        if options.anchors.is_none() {
+            options.anchors = self.anchors.clone();
         }
         Ok(Backbone::with_options(
             &self.init.x,
@@ -426,6 +443,7 @@ impl Scene {
             unseen: self.unseen.clone(),
             material_pairs: self.material_pairs.clone(),
             chain: self.chain.clone(),
+            anchors: self.anchors.clone(),
         })
     }
 
@@ -625,9 +643,18 @@ mod tests {
     /// A row of four points 1 cm apart, 10 cm up with no ground, and one gripper 5 mm beside
     /// its first point rising 1 cm per frame, under `manipulation`.
     fn lifted_row(manipulation: dataset::Manipulation) -> Scene {
+        lifted_row_joined(manipulation, None)
+    }
+
+    /// [`lifted_row`] with the dataset's `controller_springs`.
+    fn lifted_row_joined(
+        manipulation: dataset::Manipulation,
+        controller_springs: Option<dataset::ControllerSprings>,
+    ) -> Scene {
         let mut meta = DatasetMeta::new("row", 10.0, manipulation);
         meta.ground_z = None;
         meta.gripper_radius = 0.0;
+        meta.controller_springs = controller_springs;
         let positions = (0..12)
             .flat_map(|_| (0..4).map(|i| Vec3::new(0.01 * i as f32, 0.0, 0.1)))
             .collect();
@@ -662,6 +689,38 @@ mod tests {
         let loose = lifted_row(dataset::Manipulation::Grasp);
         assert_eq!(loose.init.x.len(), 4);
         assert!(rise(&loose) < 0.0, "{}", rise(&loose));
+    }
+
+    #[test]
+    fn controller_springs_join_the_gripper_by_their_own_radius_and_count() {
+        // The row's points are 1 cm apart; a 1.2 cm threshold joins neighbours only.
+        let params = springs::SpringParams {
+            threshold: 0.012,
+            ..springs::SpringParams::reference_rope()
+        };
+        let gripper_springs = |scene: &Scene| -> Vec<[u32; 2]> {
+            let bb = scene
+                .backbone(&params, &scene.sim_config(), Default::default())
+                .unwrap();
+            (bb.springs().iter().copied())
+                .filter(|s| s.contains(&4))
+                .collect()
+        };
+        let attach = |rule| lifted_row_joined(dataset::Manipulation::Attach, rule);
+        // At the start the gripper is 1.1, 1.8, 2.7 and 3.6 cm from the row's points. Without
+        // a rule of its own it is joined by the object's threshold: to point 0 alone.
+        assert_eq!(gripper_springs(&attach(None)), [[0, 4]]);
+        // PhysTwin's 4 cm reach joins all four; a count of two the nearest two.
+        let phystwin = attach(Some(dataset::ControllerSprings::PHYSTWIN));
+        assert_eq!(gripper_springs(&phystwin), [[0, 4], [1, 4], [2, 4], [3, 4]]);
+        let two = attach(Some(dataset::ControllerSprings {
+            radius_m: 0.04,
+            max_springs: 2,
+        }));
+        assert_eq!(gripper_springs(&two), [[0, 4], [1, 4]]);
+        // The rule is kept by a segment of the scene.
+        let seg = two.segment(2, 3, two.init.clone()).unwrap();
+        assert_eq!(gripper_springs(&seg), [[0, 4], [1, 4]]);
     }
 
     #[test]

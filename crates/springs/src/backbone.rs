@@ -23,6 +23,10 @@ pub struct BackboneOptions {
     /// cable's markers and the particles between them); handed to every effect's setup
     /// ([`crate::ModelSetup::chain`]). Every index must name a particle, none twice.
     pub chain: Option<std::sync::Arc<[u32]>>,
+    /// Particles joined to the object by their own radius and spring count (PhysTwin's
+    /// controller points; [`Topology::build_anchored`]); `None` joins every particle by the
+    /// object's threshold and count.
+    pub anchors: Option<crate::AnchorSprings>,
 }
 
 /// A spring-mass model of one object: topology, parameters and a fixed substep.
@@ -140,11 +144,12 @@ impl Backbone {
                 got: masses.len(),
             });
         }
-        let topo = Topology::build_with(
+        let topo = Topology::build_anchored(
             rest_positions,
             params.threshold,
             params.max_springs,
             options.pair_filter.as_deref(),
+            options.anchors.as_ref(),
         )?;
         let (springs, mut rest_lengths, partition) = if config.partitions > 1 {
             let (s, l, p) = crate::partition::order(

@@ -2,7 +2,8 @@
 //! batched in parallel.
 //!
 //! An object is a cloud of point masses (1 kg each by default) joined by axial springs with
-//! dashpots, built once from the first frame ([`Topology::build`]). A [`Backbone`] holds the
+//! dashpots, built once from the first frame ([`Topology::build`]; controller points that
+//! join the object by a rule of their own: [`AnchorSprings`]). A [`Backbone`] holds the
 //! topology, the five fitted [`SpringParams`] and a fixed substep derived from a stability bound
 //! ([`Substep::Auto`]); [`Backbone::step`] advances one model step (0.1 s) without allocating,
 //! [`Backbone::rollout`] runs a whole action sequence, and [`rollout_batch`] runs many rollouts
@@ -59,4 +60,4 @@ pub use params::{
     PAPER_BOUNDS, ParamBounds, REFERENCE_BOUNDS, SpringParams,
 };
 pub use step::{RolloutJob, Scratch, rollout_batch};
-pub use topology::{PairFilter, Topology};
+pub use topology::{AnchorSprings, PairFilter, Topology};

@@ -39,6 +39,23 @@ pub trait PairFilter: std::fmt::Debug + Send + Sync {
     fn keep(&self, a: usize, b: usize, threshold: f32) -> bool;
 }
 
+/// Particles that join the object by their own rule instead of the object's threshold and
+/// spring count: PhysTwin's controller points, each joined to up to `max_springs` of the
+/// nearest other particles within `radius_m` (its `controller_radius` and
+/// `controller_max_neighbours`, 0.04 m and 50 by default there).
+///
+/// Anchors get no springs among themselves and take no part in the object's own springs, and
+/// their springs do not count against an object particle's `max_springs`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct AnchorSprings {
+    /// The anchor particles, each named once.
+    pub particles: std::sync::Arc<[u32]>,
+    /// How far an anchor reaches, m.
+    pub radius_m: f32,
+    /// Most springs one anchor gets.
+    pub max_springs: u32,
+}
+
 impl Topology {
     /// Build springs the reference way (docs/physics.md):
     /// 1. for every particle, its up to `max_springs + 3` nearest other particles with
@@ -82,6 +99,32 @@ impl Topology {
         max_springs: u32,
         filter: Option<&dyn PairFilter>,
     ) -> Result<Self, SimError> {
+        Self::build_anchored(positions, threshold, max_springs, filter, None)
+    }
+
+    /// [`Topology::build_with`] over the particles that are not `anchors`, then each anchor, in
+    /// the order listed, joined to its up to `anchors.max_springs` nearest non-anchor particles
+    /// within `anchors.radius_m` (ties in distance broken by the lower index). The anchors'
+    /// springs come last.
+    ///
+    /// ```
+    /// use glam::Vec3;
+    /// // A row of four points 1 cm apart and a controller point 3 cm above the first.
+    /// let mut pts: Vec<Vec3> = (0..4).map(|i| Vec3::new(0.01 * i as f32, 0.0, 0.0)).collect();
+    /// pts.push(Vec3::new(0.0, 0.0, 0.03));
+    /// let anchors = springs::AnchorSprings { particles: vec![4].into(), radius_m: 0.04, max_springs: 2 };
+    /// let topo = springs::Topology::build_anchored(&pts, 0.015, 8, None, Some(&anchors))?;
+    /// // The object's own springs at 1.5 cm, then the anchor's two nearest within 4 cm.
+    /// assert_eq!(topo.springs, vec![[0, 1], [1, 2], [2, 3], [0, 4], [1, 4]]);
+    /// # Ok::<(), springs::SimError>(())
+    /// ```
+    pub fn build_anchored(
+        positions: &[Vec3],
+        threshold: f32,
+        max_springs: u32,
+        filter: Option<&dyn PairFilter>,
+        anchors: Option<&AnchorSprings>,
+    ) -> Result<Self, SimError> {
         if !(threshold.is_finite() && threshold > 0.0) {
             return Err(SimError::InvalidParameter {
                 name: "threshold",
@@ -111,7 +154,8 @@ impl Topology {
                 limit: MAX_CANDIDATES,
             });
         }
-        if n < 2 || max_springs == 0 {
+        let is_anchor = anchor_mask(n, anchors)?;
+        if n < 2 {
             return Ok(Self {
                 springs: Vec::new(),
                 rest_lengths: Vec::new(),
@@ -128,10 +172,13 @@ impl Topology {
         let mut candidates: Vec<(f32, u32, u32)> = Vec::new();
         let mut near: Vec<(f32, u32)> = Vec::new();
         for (i, &p) in positions.iter().enumerate() {
+            if max_springs == 0 || is_anchor[i] {
+                continue;
+            }
             near.clear();
             for nb in tree.within_unsorted::<SquaredEuclidean>(&pts[i], query_r2) {
                 let j = nb.item;
-                if j as usize == i {
+                if j as usize == i || is_anchor[j as usize] {
                     continue;
                 }
                 let d2 = dist2(p, positions[j as usize]);
@@ -162,6 +209,27 @@ impl Topology {
                 rest_lengths.push(kernel_distance(positions[ua], positions[ub]));
             }
         }
+        if let Some(anchors) = anchors {
+            let r2 = anchors.radius_m * anchors.radius_m;
+            let query_r2 = r2 * (1.0 + 1e-4) + f32::MIN_POSITIVE;
+            let most = anchors.max_springs as usize;
+            for &a in anchors.particles.iter() {
+                let p = positions[a as usize];
+                near.clear();
+                for nb in tree.within_unsorted::<SquaredEuclidean>(&pts[a as usize], query_r2) {
+                    let j = nb.item;
+                    let d2 = dist2(p, positions[j as usize]);
+                    if !is_anchor[j as usize] && d2 <= r2 {
+                        near.push((d2, j));
+                    }
+                }
+                near.sort_unstable_by(cmp_near);
+                for &(_, j) in near.iter().take(most) {
+                    springs.push([a.min(j), a.max(j)]);
+                    rest_lengths.push(kernel_distance(p, positions[j as usize]));
+                }
+            }
+        }
         Ok(Self {
             springs,
             rest_lengths,
@@ -190,6 +258,38 @@ impl Topology {
         }
         count
     }
+}
+
+/// Which of `n` particles are anchors; an error for a bad radius, an index beyond the
+/// particles or one named twice.
+fn anchor_mask(n: usize, anchors: Option<&AnchorSprings>) -> Result<Vec<bool>, SimError> {
+    let mut mask = vec![false; n];
+    let Some(anchors) = anchors else {
+        return Ok(mask);
+    };
+    if !(anchors.radius_m.is_finite() && anchors.radius_m > 0.0) {
+        return Err(SimError::InvalidParameter {
+            name: "anchor radius",
+            value: f64::from(anchors.radius_m),
+            reason: "must be finite and > 0",
+        });
+    }
+    for &a in anchors.particles.iter() {
+        let reason = match mask.get_mut(a as usize) {
+            Some(seen) if !*seen => {
+                *seen = true;
+                continue;
+            }
+            Some(_) => "an anchor is named twice",
+            None => "an anchor names a particle the model does not have",
+        };
+        return Err(SimError::InvalidParameter {
+            name: "anchors",
+            value: f64::from(a),
+            reason,
+        });
+    }
+    Ok(mask)
 }
 
 fn cmp_near(a: &(f32, u32), b: &(f32, u32)) -> std::cmp::Ordering {

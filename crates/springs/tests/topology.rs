@@ -4,7 +4,7 @@ mod common;
 
 use glam::{Vec3, Vec3A};
 use proptest::prelude::*;
-use springs::{PairFilter, SimError, Topology};
+use springs::{AnchorSprings, PairFilter, SimError, Topology};
 
 /// A symmetric filter that rejects about a third of the pairs, pseudo-randomly by `salt`.
 #[derive(Debug)]
@@ -119,6 +119,42 @@ proptest! {
     }
 
     #[test]
+    fn anchors_join_by_their_own_rule_and_leave_the_object_as_it_was(
+        seed in any::<u64>(), n in 2usize..120, grid in any::<bool>(), picks in 1usize..6,
+        threshold in 0.002f32..0.03, max_springs in 0u32..40,
+        radius in 0.002f32..0.06, anchor_max in 0u32..60,
+    ) {
+        let x = points(seed, n, grid);
+        // Anchors spread over the indices, as controller points appended to an object would
+        // not be: the rule must not depend on where they sit.
+        let mut anchors: Vec<u32> = (0..picks).map(|k| ((k * 37 + seed as usize % 11) % n) as u32).collect();
+        anchors.sort_unstable();
+        anchors.dedup();
+        let is_anchor = |i: usize| anchors.contains(&(i as u32));
+        let rule = AnchorSprings { particles: anchors.clone().into(), radius_m: radius, max_springs: anchor_max };
+        let topo = Topology::build_anchored(&x, threshold, max_springs, None, Some(&rule)).unwrap();
+        let got: Vec<([u32; 2], f32)> =
+            topo.springs.iter().copied().zip(topo.rest_lengths.iter().copied()).collect();
+        // First the object's springs, as if the anchors did not take part ...
+        let mut expected =
+            brute_force_keeping(&x, threshold, max_springs, &|a, b| !is_anchor(a) && !is_anchor(b));
+        // ... then every anchor's nearest non-anchors within its radius, by brute force.
+        for &a in &anchors {
+            let d2 = |j: usize| (Vec3A::from(x[j]) - Vec3A::from(x[a as usize])).length_squared();
+            let mut near: Vec<(f32, usize)> = (0..n)
+                .filter(|&j| !is_anchor(j) && d2(j) <= radius * radius)
+                .map(|j| (d2(j), j))
+                .collect();
+            near.sort_by(|p, q| p.0.total_cmp(&q.0).then(p.1.cmp(&q.1)));
+            for &(_, j) in near.iter().take(anchor_max as usize) {
+                let (lo, hi) = ((a as usize).min(j), (a as usize).max(j));
+                expected.push(([lo as u32, hi as u32], (Vec3A::from(x[hi]) - Vec3A::from(x[lo])).length()));
+            }
+        }
+        prop_assert_eq!(got, expected);
+    }
+
+    #[test]
     fn respects_limits(seed in any::<u64>(), n in 2usize..200, threshold in 0.002f32..0.05,
                        max_springs in 1u32..30) {
         let x = points(seed, n, false);
@@ -200,6 +236,29 @@ fn bad_input() {
         })
     );
     assert!(Topology::build(&[], 0.1, 4).unwrap().is_empty());
+    let x: Vec<Vec3> = (0..3).map(|i| Vec3::X * i as f32 * 0.01).collect();
+    let anchored = |particles: Vec<u32>, radius_m: f32| {
+        let rule = AnchorSprings {
+            particles: particles.into(),
+            radius_m,
+            max_springs: 4,
+        };
+        Topology::build_anchored(&x, 0.015, 4, None, Some(&rule))
+    };
+    for (particles, radius) in [
+        (vec![3], 0.04),
+        (vec![1, 1], 0.04),
+        (vec![1], 0.0),
+        (vec![1], f32::NAN),
+    ] {
+        assert!(
+            matches!(
+                anchored(particles.clone(), radius),
+                Err(SimError::InvalidParameter { .. })
+            ),
+            "{particles:?} {radius}"
+        );
+    }
 }
 
 #[test]

@@ -22,17 +22,21 @@
 //!   frame 0 through the test frames instead;
 //! - each controller point is a gripper, always closed; by default (`attach`) each is a
 //!   particle of the model joined by springs to the object particles near it at a rollout's
-//!   start, as PhysTwin joins its controller points (there with their own radius, 4 cm, and
-//!   up to 50 springs each; here with the fitted threshold and spring count of the object's
-//!   springs); under `grasp` the object points within `gripper_radius` of one follow the
-//!   nearest rigidly instead, and under `push` they are spheres that push.
+//!   start, as PhysTwin joins its controller points: with their own radius and spring count
+//!   (`controller_springs` in `dataset.json`; PhysTwin's defaults, 4 cm and 50, unless
+//!   [`PhysTwinOptions::controller_springs`] says otherwise, e.g. a case's fitted
+//!   `controller_radius` and `controller_max_neighbours`); under `grasp` the object points
+//!   within `gripper_radius` of one follow the nearest rigidly instead, and under `push` they
+//!   are spheres that push.
 
 use std::path::{Path, PathBuf};
 
 use glam::Vec3;
 
 use super::pickle::{self, NdArray, Value};
-use crate::{DatasetMeta, DatasetWriter, Episode, Error, Manipulation, Result, Split};
+use crate::{
+    ControllerSprings, DatasetMeta, DatasetWriter, Episode, Error, Manipulation, Result, Split,
+};
 
 /// How a capture becomes episodes.
 #[derive(Clone, Copy, Debug)]
@@ -50,6 +54,9 @@ pub struct PhysTwinOptions {
     /// Radius within which a controller point holds (`grasp`) or pushes (`push`) object
     /// points, m; unused by `attach`.
     pub gripper_radius_m: f32,
+    /// `attach` only: the controller points' own spring rule; `None` joins them by the
+    /// object's fitted threshold and spring count.
+    pub controller_springs: Option<ControllerSprings>,
 }
 
 impl Default for PhysTwinOptions {
@@ -62,6 +69,7 @@ impl Default for PhysTwinOptions {
             source_fps: 30.0,
             manipulation: Manipulation::Attach,
             gripper_radius_m: 0.02,
+            controller_springs: Some(ControllerSprings::PHYSTWIN),
         }
     }
 }
@@ -415,6 +423,9 @@ pub fn import(source: &Path, out: &Path, opts: &PhysTwinOptions) -> Result<PhysT
         opts.manipulation,
     );
     meta.gripper_radius = opts.gripper_radius_m;
+    if opts.manipulation == Manipulation::Attach {
+        meta.controller_springs = opts.controller_springs;
+    }
     let mut writer = DatasetWriter::create(out, meta)?;
     let (m, c, len) = (cap.points, cap.controllers, opts.episode_frames);
     let mut report = PhysTwinReport {
