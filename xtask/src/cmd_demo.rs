@@ -112,7 +112,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
             fixed_threshold_range: false,
             substep: SubstepArg::Auto,
             material_springs: false,
-            quiet: true,
+            quiet: false,
         })?;
         let report = cmd_eval::run(&EvalArgs {
             data: dir.clone(),
