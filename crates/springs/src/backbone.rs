@@ -166,22 +166,7 @@ impl Backbone {
         let mut stiffness = vec![params.stiffness; springs.len()];
         let mut damping = vec![params.damping; springs.len()];
         if let Some(chain) = &options.chain {
-            let mut seen = vec![false; n];
-            for &p in chain.iter() {
-                let reason = match seen.get_mut(p as usize) {
-                    Some(s) if !*s => {
-                        *s = true;
-                        continue;
-                    }
-                    Some(_) => "a particle appears twice in the chain order",
-                    None => "the chain order names a particle the model does not have",
-                };
-                return Err(SimError::InvalidParameter {
-                    name: "chain",
-                    value: f64::from(p),
-                    reason,
-                });
-            }
+            crate::topology::mark_each_once(n, chain, "chain")?;
         }
         let mut effects = options.effects;
         for e in &mut effects {

@@ -263,9 +263,8 @@ impl Topology {
 /// Which of `n` particles are anchors; an error for a bad radius, an index beyond the
 /// particles or one named twice.
 fn anchor_mask(n: usize, anchors: Option<&AnchorSprings>) -> Result<Vec<bool>, SimError> {
-    let mut mask = vec![false; n];
     let Some(anchors) = anchors else {
-        return Ok(mask);
+        return Ok(vec![false; n]);
     };
     if !(anchors.radius_m.is_finite() && anchors.radius_m > 0.0) {
         return Err(SimError::InvalidParameter {
@@ -274,18 +273,29 @@ fn anchor_mask(n: usize, anchors: Option<&AnchorSprings>) -> Result<Vec<bool>, S
             reason: "must be finite and > 0",
         });
     }
-    for &a in anchors.particles.iter() {
-        let reason = match mask.get_mut(a as usize) {
+    mark_each_once(n, &anchors.particles, "anchors")
+}
+
+/// Marks the `indices` among `n` particles; an error naming `what` for an index beyond them or
+/// one named twice.
+pub(crate) fn mark_each_once(
+    n: usize,
+    indices: &[u32],
+    what: &'static str,
+) -> Result<Vec<bool>, SimError> {
+    let mut mask = vec![false; n];
+    for &i in indices {
+        let reason = match mask.get_mut(i as usize) {
             Some(seen) if !*seen => {
                 *seen = true;
                 continue;
             }
-            Some(_) => "an anchor is named twice",
-            None => "an anchor names a particle the model does not have",
+            Some(_) => "listed twice",
+            None => "beyond the model's particles",
         };
         return Err(SimError::InvalidParameter {
-            name: "anchors",
-            value: f64::from(a),
+            name: what,
+            value: f64::from(i),
             reason,
         });
     }

@@ -231,6 +231,39 @@ fn bad_input_is_rejected() {
         err_of(Backbone::with_options(&x, &[], p, c, opts(m))),
         SimError::InvalidParameter { .. }
     ));
+    // A chain order or anchor list naming a particle twice, or one the model does not have.
+    for (bad, name) in [(vec![0, 1, 1], "chain"), (vec![0, 8], "chain")] {
+        let chained = BackboneOptions {
+            chain: Some(bad.into()),
+            ..Default::default()
+        };
+        let err = err_of(Backbone::with_options(&x, &[], p, c, chained));
+        assert!(
+            matches!(err, SimError::InvalidParameter { name: n, .. } if n == name),
+            "{err}"
+        );
+    }
+    for bad in [vec![2, 2], vec![9]] {
+        let anchored = BackboneOptions {
+            anchors: Some(springs::AnchorSprings {
+                particles: bad.into(),
+                radius_m: 0.05,
+                max_springs: 4,
+            }),
+            ..Default::default()
+        };
+        let err = err_of(Backbone::with_options(&x, &[], p, c, anchored));
+        assert!(
+            matches!(
+                err,
+                SimError::InvalidParameter {
+                    name: "anchors",
+                    ..
+                }
+            ),
+            "{err}"
+        );
+    }
     let r = Backbone::new(
         &x,
         &[],
