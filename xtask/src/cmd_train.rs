@@ -377,6 +377,10 @@ struct TrainReport {
     grad_norm: Vec<f64>,
     lr: Vec<f64>,
     diverged_rollouts: usize,
+    /// Training episodes whose guided trajectory diverged, their guided segments started from
+    /// the backbone's own trajectory instead (absent when none did).
+    #[serde(skip_serializing_if = "is_zero")]
+    guided_fallbacks: usize,
     wall_s: f64,
     session_wall_s: f64,
     threads: usize,
@@ -387,6 +391,10 @@ struct TrainReport {
     /// The network training started from (`--init-from`); absent for a fresh initialisation.
     #[serde(skip_serializing_if = "Option::is_none")]
     init_from: Option<String>,
+}
+
+fn is_zero(n: &usize) -> bool {
+    *n == 0
 }
 
 /// Blocks per stage: as given, else one per stage of the channels given, else the default's.
@@ -764,6 +772,7 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
                 grad_norm: gnorm.to_vec(),
                 lr: lrs.to_vec(),
                 diverged_rollouts: diverged,
+                guided_fallbacks: trainer.guided_fallbacks(),
                 wall_s: prior_wall + t_train.elapsed().as_secs_f64(),
                 session_wall_s: session,
                 threads: args.threads,
@@ -906,6 +915,19 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
             report_path.display()
         ),
     );
+    if trainer.guided_fallbacks() > 0 {
+        say(
+            args,
+            format!(
+                "note: the guided trajectory of {} of {} training episodes diverged (the backbone \
+                 nudged toward the recorded frames by up to {} m/s a step); their guided segments \
+                 start from the backbone's own trajectory",
+                trainer.guided_fallbacks(),
+                set.len(),
+                trainer.net.config().residual_scale
+            ),
+        );
+    }
     if let Some(sel) = selection
         .as_ref()
         .filter(|s| s.best_step == 0 && init_from.is_none())

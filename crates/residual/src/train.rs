@@ -331,12 +331,23 @@ impl TrainSet {
 
     /// Every episode's guided backbone trajectory: after each backbone step, every free
     /// tracked particle seen in the next recorded frame gets the velocity change (bounded by
-    /// `bound` m/s per axis) that moves it toward that frame.
-    pub(crate) fn guided_trajectories(&self, bound: f32) -> Result<Vec<Trajectory>> {
-        self.episodes
+    /// `bound` m/s per axis) that moves it toward that frame. An episode whose guided
+    /// trajectory diverges (a stiff backbone nudged hard) gets the backbone's own trajectory
+    /// instead; the second value counts those episodes.
+    pub(crate) fn guided_trajectories(&self, bound: f32) -> Result<(Vec<Trajectory>, usize)> {
+        let mut fallbacks = 0;
+        let trajectories = self
+            .episodes
             .iter()
-            .map(|ep| self.guided_trajectory(ep, bound))
-            .collect()
+            .map(|ep| match self.guided_trajectory(ep, bound) {
+                Err(ResidualError::Sim(springs::SimError::Diverged { .. })) => {
+                    fallbacks += 1;
+                    self.guided_trajectory(ep, 0.0)
+                }
+                other => other,
+            })
+            .collect::<Result<Vec<_>>>()?;
+        Ok((trajectories, fallbacks))
     }
 
     /// `ep`'s guided backbone trajectory (see [`TrainSet::guided_trajectories`]); a bound of 0
@@ -506,6 +517,8 @@ pub struct Trainer {
     ema: Option<Vec<Tensor>>,
     starts: Option<Vec<Trajectory>>,
     guided: Option<Vec<Trajectory>>,
+    /// Episodes whose guided trajectory diverged and which start from the backbone's own.
+    guided_fallbacks: usize,
 }
 
 const BETA1: f64 = 0.9;
@@ -579,6 +592,7 @@ impl Trainer {
             ema,
             starts: None,
             guided: None,
+            guided_fallbacks: 0,
         })
     }
 
@@ -596,6 +610,13 @@ impl Trainer {
         rng
     }
 
+    /// How many training episodes' guided trajectories diverged, so that their guided
+    /// segments start from the backbone's own trajectory ([`StartFrom::Guided`],
+    /// [`StartFrom::GuidedRecorded`]; 0 until the first step builds them).
+    pub fn guided_fallbacks(&self) -> usize {
+        self.guided_fallbacks
+    }
+
     /// One optimiser step on a batch drawn from `set`.
     pub fn train_step(&mut self, set: &TrainSet) -> Result<StepStats> {
         let guided = matches!(
@@ -603,7 +624,10 @@ impl Trainer {
             StartFrom::Guided | StartFrom::GuidedRecorded
         );
         if guided && self.guided.is_none() {
-            self.guided = Some(set.guided_trajectories(self.net.config().residual_scale)?);
+            let (trajectories, fallbacks) =
+                set.guided_trajectories(self.net.config().residual_scale)?;
+            self.guided = Some(trajectories);
+            self.guided_fallbacks = fallbacks;
         }
         if matches!(self.cfg.start_from, StartFrom::Rollout | StartFrom::Guided) {
             let every = self.cfg.refresh_every;

@@ -630,3 +630,78 @@ fn input_noise_and_weight_decay_train_deterministically() {
         plain.1
     );
 }
+
+/// A copy of the rope fixture's first two training episodes; in the first, every other
+/// particle's recorded position at frame 10 (inside the paper window, frames 6..=43) is 5 km
+/// away, so a guided backbone trajectory nudged toward it without a tight bound diverges.
+fn rope_with_a_wild_frame(dir: &std::path::Path) -> Dataset {
+    let src = Dataset::open(common::fixture("rope")).unwrap();
+    let meta = dataset::DatasetMeta {
+        episodes: Vec::new(),
+        ..src.meta.clone()
+    };
+    let mut writer = dataset::DatasetWriter::create(dir, meta).unwrap();
+    for (k, &i) in src.split_indices(Split::Train).iter().take(2).enumerate() {
+        let ep = src.load_episode(i).unwrap();
+        let n = ep.particles();
+        let mut x = ep.positions().to_vec();
+        if k == 0 {
+            for p in (0..n).step_by(2) {
+                x[10 * n + p].x += 5000.0;
+            }
+        }
+        let closed = (0..ep.frames())
+            .flat_map(|t| (0..ep.grippers()).map(move |g| (t, g)))
+            .map(|(t, g)| u8::from(ep.closed(t, g)))
+            .collect();
+        let mut copy = dataset::Episode::new(
+            ep.frames(),
+            n,
+            ep.grippers(),
+            x,
+            ep.gripper_positions().to_vec(),
+        )
+        .unwrap()
+        .with_closed(closed)
+        .unwrap();
+        if let Some(held) = ep.held() {
+            copy = copy.with_held(held.to_vec()).unwrap();
+        }
+        writer.add_episode(&copy, Split::Train).unwrap();
+    }
+    writer.finish().unwrap();
+    Dataset::open(dir).unwrap()
+}
+
+#[test]
+fn an_episode_whose_guided_trajectory_diverges_starts_from_the_backbones_own() {
+    let dir = common::temp_dir("guided-fallback").join("data");
+    let _ = std::fs::remove_dir_all(&dir);
+    let data = rope_with_a_wild_frame(&dir);
+    let set = TrainSet::new(
+        &data,
+        Split::Train,
+        &springs::SpringParams::reference_rope(),
+        &scene::SceneConfig::default(),
+    )
+    .unwrap();
+    // The guided nudge is bounded by the residual's scale: 1e5 m/s lets it reach the wild frame.
+    let cfg = ModelConfig {
+        residual_scale: 1e5,
+        ..ModelConfig::default()
+    };
+    let train = TrainConfig {
+        start_from: StartFrom::Guided,
+        batch: 2,
+        ..TrainConfig::default()
+    };
+    let mut trainer = Trainer::new(ResidualNet::new(&cfg, 0).unwrap(), train.clone()).unwrap();
+    trainer.train_step(&set).unwrap();
+    assert_eq!(trainer.guided_fallbacks(), 1);
+    // At the residual's usual bound the nudge stays small and nothing falls back.
+    let mut usual =
+        Trainer::new(ResidualNet::new(&ModelConfig::default(), 0).unwrap(), train).unwrap();
+    usual.train_step(&set).unwrap();
+    assert_eq!(usual.guided_fallbacks(), 0);
+    std::fs::remove_dir_all(&dir).ok();
+}
