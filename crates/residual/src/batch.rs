@@ -301,7 +301,7 @@ impl<'a> Live<'a> {
             .step(&mut self.sim, from, to, &mut self.scratch)
         {
             self.failed = Some(match e {
-                SimError::NonFinite { .. } => ResidualError::Diverged {
+                SimError::NonFinite { .. } | SimError::Diverged { .. } => ResidualError::Diverged {
                     step,
                     what: e.to_string(),
                 },

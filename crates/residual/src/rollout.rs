@@ -360,7 +360,7 @@ fn run(
             None => backbone.step(&mut sim, from, to, &mut scratch),
         };
         stepped.map_err(|e| match e {
-            SimError::NonFinite { .. } => ResidualError::Diverged {
+            SimError::NonFinite { .. } | SimError::Diverged { .. } => ResidualError::Diverged {
                 step,
                 what: e.to_string(),
             },

@@ -285,3 +285,37 @@ fn a_reloaded_checkpoint_predicts_identically_on_the_forward_only_path() {
     assert_ne!(positions(&net), positions(&other));
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// A state the backbone carries beyond its divergence limit is a diverged rollout, as a NaN
+/// is, on the forward-only path and the autograd one: training skips such a rollout and
+/// evaluation counts it, where before a run stopped with the backbone's error.
+#[test]
+fn a_rollout_beyond_the_divergence_limit_is_a_diverged_rollout() {
+    let (_, _, mut scene, history, backbone) = common::scene("rope", 0);
+    // A particle twice the limit away: no backbone step may carry it on.
+    scene.init.x[7] = Vec3::X * 2.0 * springs::DIVERGENCE_LIMIT;
+    let net = ResidualNet::new(&ModelConfig::tiny(), 4).unwrap();
+    let job = PredictJob {
+        backbone: &backbone,
+        init: &scene.init,
+        history: &history,
+        actions: &scene.actions,
+        steps: 4,
+    };
+    let out = predict_batch(&net, &[job]).unwrap();
+    assert!(
+        matches!(out[0], Err(residual::ResidualError::Diverged { .. })),
+        "{:?}",
+        out[0].as_ref().err()
+    );
+    let opts = residual::RolloutOptions {
+        steps: 4,
+        ..Default::default()
+    };
+    let autograd = residual::hybrid_rollout(&net, &backbone, &scene, &history, opts);
+    assert!(
+        matches!(autograd, Err(residual::ResidualError::Diverged { .. })),
+        "{:?}",
+        autograd.err()
+    );
+}
