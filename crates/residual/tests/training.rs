@@ -437,14 +437,7 @@ fn bounded_oracle_spans_backbone_to_truth() {
 /// frame's backbone would join the wrong particles (docs/residual-log.md, "Carried interiors").
 #[test]
 fn recorded_starts_on_a_filled_volume_run_in_their_own_springs() {
-    let data = Dataset::open(common::fixture("teddy")).unwrap();
-    let set = TrainSet::new(
-        &data,
-        Split::Train,
-        &springs::SpringParams::reference_rope(),
-        &scene::SceneConfig::default(),
-    )
-    .unwrap();
+    let set = common::train_set(&Dataset::open(common::fixture("teddy")).unwrap());
     let mut rng = ChaCha8Rng::seed_from_u64(3);
     for _ in 0..150 {
         let s = set.sample(&mut rng, 3, false).unwrap();
@@ -677,14 +670,7 @@ fn rope_with_a_wild_frame(dir: &std::path::Path) -> Dataset {
 fn an_episode_whose_guided_trajectory_diverges_starts_from_the_backbones_own() {
     let dir = common::temp_dir("guided-fallback").join("data");
     let _ = std::fs::remove_dir_all(&dir);
-    let data = rope_with_a_wild_frame(&dir);
-    let set = TrainSet::new(
-        &data,
-        Split::Train,
-        &springs::SpringParams::reference_rope(),
-        &scene::SceneConfig::default(),
-    )
-    .unwrap();
+    let set = common::train_set(&rope_with_a_wild_frame(&dir));
     // The guided nudge is bounded by the residual's scale: 1e5 m/s lets it reach the wild frame.
     let cfg = ModelConfig {
         residual_scale: 1e5,

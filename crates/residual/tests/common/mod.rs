@@ -34,9 +34,13 @@ pub fn scene(name: &str, episode: usize) -> (Dataset, Episode, Scene, History, B
 
 /// The rope fixture's training split with the reference rope parameters.
 pub fn rope_train_set() -> TrainSet {
-    let data = Dataset::open(fixture("rope")).unwrap();
+    train_set(&Dataset::open(fixture("rope")).unwrap())
+}
+
+/// `data`'s training split with the reference rope parameters and the default scenes.
+pub fn train_set(data: &Dataset) -> TrainSet {
     TrainSet::new(
-        &data,
+        data,
         Split::Train,
         &SpringParams::reference_rope(),
         &SceneConfig::default(),
