@@ -112,6 +112,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
             fixed_threshold_range: false,
             substep: SubstepArg::Auto,
             material_springs: false,
+            fit_controller: false,
             quiet: false,
         })?;
         let report = cmd_eval::run(&EvalArgs {

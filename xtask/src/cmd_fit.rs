@@ -5,7 +5,7 @@ use std::time::Instant;
 
 use anyhow::Context;
 use dataset::{Dataset, Split};
-use fit::{BackboneFamily, FitConfig};
+use fit::{BackboneFamily, ControllerFamily, FitConfig};
 use indicatif::{ProgressBar, ProgressStyle};
 use scene::Scene;
 
@@ -67,6 +67,13 @@ pub struct FitArgs {
     /// backbone.json; every later stage builds the run's model the same way.
     #[arg(long)]
     pub material_springs: bool,
+    /// For an `attach` dataset (a PhysTwin import): also search how the controller points join
+    /// the object, their reach (0.01–0.08 m) and spring count (10–80), as PhysTwin's first stage
+    /// does, starting from the rule the dataset declares. Recorded in backbone.json; every later
+    /// stage builds the run's model with the rule found (docs/pipelines.md, "The controller
+    /// rule").
+    #[arg(long)]
+    pub fit_controller: bool,
     /// Print nothing but the final line.
     #[arg(long)]
     pub quiet: bool,
@@ -127,15 +134,34 @@ pub fn search_bounds(
 pub fn run(args: &FitArgs) -> anyhow::Result<BackboneFile> {
     let t0 = Instant::now();
     let data = Dataset::open(&args.data)?;
+    // The search starts from the dataset's own rule; a dataset whose controller points are
+    // joined like the object (`import phystwin --controller-like-object`) starts from
+    // PhysTwin's defaults.
+    let controller_start = if args.fit_controller {
+        anyhow::ensure!(
+            data.meta.manipulation == dataset::Manipulation::Attach,
+            "--fit-controller searches how an `attach` dataset's controller points join the \
+             object, and {} is a {:?} dataset (its grippers have no springs of their own)",
+            args.data.display(),
+            data.meta.manipulation
+        );
+        Some(
+            data.meta
+                .controller_springs
+                .unwrap_or(dataset::ControllerSprings::PHYSTWIN),
+        )
+    } else {
+        None
+    };
     let setting = SceneSetting {
         substep: args.substep,
         material_springs: args.material_springs,
+        controller_springs: controller_start,
     };
     let scenes = scenes(&data, Split::Train, args.protocol.into(), setting)?;
     std::fs::create_dir_all(&args.run)
         .with_context(|| format!("creating {}", args.run.display()))?;
     let bounds = search_bounds(args.bounds, args.fixed_threshold_range, &scenes, args.quiet);
-    let family = BackboneFamily::new(bounds)?;
     let config = FitConfig {
         population: args.population,
         generations: args.generations,
@@ -159,13 +185,24 @@ pub fn run(args: &FitArgs) -> anyhow::Result<BackboneFile> {
     bar.set_style(ProgressStyle::with_template(
         "fit {bar:30} {pos}/{len} generations  {msg}  [{elapsed} < {eta}]",
     )?);
-    let outcome = fit::fit(&scenes, &family, &config, Some(&checkpoint), &mut |g| {
+    let mut progress = |g: &fit::Generation| {
         bar.set_position(g.index as u64 + 1);
         bar.set_message(format!(
             "best {:.3e} m² (gen {:.3e}, {} diverged, {:.1} s)",
             g.best_so_far, g.best_loss, g.diverged, g.wall_s
         ));
-    })?;
+    };
+    let ck = Some(checkpoint.as_path());
+    let outcome = match controller_start {
+        Some(start) => {
+            let family = ControllerFamily::new(bounds, start)?;
+            fit::fit(&scenes, &family, &config, ck, &mut progress)?
+        }
+        None => {
+            let family = BackboneFamily::new(bounds)?;
+            fit::fit(&scenes, &family, &config, ck, &mut progress)?
+        }
+    };
     bar.finish();
     if let Some(g) = outcome.resumed_from {
         println!("resumed from generation {g} ({})", checkpoint.display());
@@ -197,6 +234,7 @@ pub fn run(args: &FitArgs) -> anyhow::Result<BackboneFile> {
         backbone_path(&args.run).display()
     );
     let params = BackboneFamily::params(&outcome.best);
+    let controller_springs = controller_start.map(|_| ControllerFamily::rule(&outcome.best));
     if let Some(scene) = scenes.first() {
         warn_if_unconnected(scene, &params, Default::default())?;
     }
@@ -217,6 +255,7 @@ pub fn run(args: &FitArgs) -> anyhow::Result<BackboneFile> {
         refined: None,
         substep: args.substep,
         material_springs: args.material_springs,
+        controller_springs,
     };
     write_json(&backbone_path(&args.run), &file)?;
     println!(
@@ -232,6 +271,12 @@ pub fn run(args: &FitArgs) -> anyhow::Result<BackboneFile> {
         file.fit.best_loss,
         backbone_path(&args.run).display()
     );
+    if let Some(rule) = controller_springs {
+        println!(
+            "controller points: each joined to up to {} particles within {:.4} m",
+            rule.max_springs, rule.radius_m
+        );
+    }
     Ok(file)
 }
 
@@ -258,6 +303,7 @@ impl FitArgs {
             fixed_threshold_range: false,
             substep: SubstepArg::Auto,
             material_springs: false,
+            fit_controller: false,
             quiet: true,
         }
     }
@@ -330,6 +376,67 @@ mod tests {
                 .contains("material_springs")
         );
         std::fs::remove_dir_all(&dir).ok();
+    }
+
+    /// `--fit-controller` on a PhysTwin import: the rule found is recorded, every later stage
+    /// builds its scenes with it, and a dataset without controller points refuses the flag.
+    #[test]
+    fn the_run_records_the_controller_rule_it_found_and_grasp_data_refuses_the_search() {
+        let root = std::env::temp_dir().join(format!("pgrd-fit-ctrl-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&root);
+        let case =
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../fixtures/phystwin/rope_lift");
+        let opts = dataset::import::phystwin::PhysTwinOptions {
+            every: 1,
+            episode_frames: 12,
+            stride_frames: 6,
+            ..Default::default()
+        };
+        dataset::import::phystwin::import(&case, &root.join("data"), &opts).unwrap();
+        let run_dir = root.join("run");
+        let args = FitArgs {
+            data: root.join("data"),
+            population: 4,
+            generations: 2,
+            protocol: ProtocolArg::Deform,
+            fit_controller: true,
+            ..FitArgs::quick_rope_fixture(run_dir.clone())
+        };
+        let file = run(&args).unwrap();
+        let rule = file.controller_springs.expect("the rule found is recorded");
+        assert!((0.01..=0.08).contains(&rule.radius_m), "{rule:?}");
+        assert!((10..=80).contains(&rule.max_springs), "{rule:?}");
+        assert_eq!(file.fit.names.len(), 7);
+        let read = read_backbone(&run_dir).unwrap();
+        assert_eq!(read.controller_springs, Some(rule));
+        let data = Dataset::open(root.join("data")).unwrap();
+        let train = scenes(&data, Split::Train, scene::Protocol::Deform, read.setting()).unwrap();
+        let anchors = train[0]
+            .anchors()
+            .expect("the controller points are anchors");
+        assert_eq!(
+            (anchors.radius_m, anchors.max_springs),
+            (rule.radius_m, rule.max_springs)
+        );
+        // A plain fit of the same data keeps the dataset's rule and writes no key.
+        let plain = run(&FitArgs {
+            fit_controller: false,
+            ..FitArgs {
+                run: root.join("plain"),
+                ..args
+            }
+        })
+        .unwrap();
+        assert_eq!(plain.controller_springs, None);
+        let text = std::fs::read_to_string(backbone_path(&root.join("plain"))).unwrap();
+        assert!(!text.contains("controller_springs"), "{text}");
+        let err = run(&FitArgs {
+            fit_controller: true,
+            ..FitArgs::quick_rope_fixture(root.join("rope"))
+        })
+        .unwrap_err();
+        assert!(format!("{err:#}").contains("`attach` dataset"), "{err:#}");
+        std::fs::remove_dir_all(&root).ok();
     }
 
     /// Data no parameters can simulate (gravity a million times too strong, upward) is a

@@ -43,21 +43,25 @@ pub enum SubstepArg {
     Spectral,
 }
 
-/// How a run's scenes are built: its substep rule, and whether its springs join material
-/// neighbours only (`fit --material-springs`; docs/pipelines.md, "Material springs").
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+/// How a run's scenes are built: its substep rule, whether its springs join material
+/// neighbours only (`fit --material-springs`; docs/pipelines.md, "Material springs"), and the
+/// controller rule its fit found (`fit --fit-controller`).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct SceneSetting {
     /// The simulator's substep rule.
     pub substep: SubstepArg,
     /// Springs only between tracked points that stay close across the training recordings.
     pub material_springs: bool,
+    /// How an `attach` dataset's controller points join the object, instead of the rule its
+    /// `dataset.json` declares (`None`: the dataset's).
+    pub controller_springs: Option<dataset::ControllerSprings>,
 }
 
 impl From<SubstepArg> for SceneSetting {
     fn from(substep: SubstepArg) -> Self {
         SceneSetting {
             substep,
-            material_springs: false,
+            ..SceneSetting::default()
         }
     }
 }
@@ -69,6 +73,7 @@ impl SceneSetting {
     pub fn scene_config(self, data: &Dataset) -> anyhow::Result<SceneConfig> {
         let config = SceneConfig {
             substep: self.substep.substep(),
+            controller_springs: self.controller_springs,
             ..SceneConfig::default()
         };
         let config = config.with_neighbours_of(data).with_context(|| {
@@ -188,6 +193,11 @@ pub struct BackboneFile {
     /// uses the same rule.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub material_springs: bool,
+    /// How the controller points of the `attach` dataset join the object, as `fit
+    /// --fit-controller` found it (absent: the rule the dataset declares); every stage that
+    /// builds this run's model uses it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub controller_springs: Option<dataset::ControllerSprings>,
 }
 
 impl BackboneFile {
@@ -213,11 +223,12 @@ impl BackboneFile {
         })
     }
 
-    /// How this run's scenes are built (substep rule, material springs).
+    /// How this run's scenes are built (substep rule, material springs, controller rule).
     pub fn setting(&self) -> SceneSetting {
         SceneSetting {
             substep: self.substep,
             material_springs: self.material_springs,
+            controller_springs: self.controller_springs,
         }
     }
 

@@ -3,7 +3,8 @@
 //! Contacts make gradients unreliable, so the search is black-box: each CMA-ES candidate is
 //! rolled out on a sample of training [`scene::Scene`]s and scored by the mean squared position
 //! error over the window. A [`Family`] says which parameters are searched and how a real
-//! parameter vector becomes a backbone; [`BackboneFamily`] is the paper's five parameters.
+//! parameter vector becomes a backbone; [`BackboneFamily`] is the paper's five parameters,
+//! [`ControllerFamily`] adds the rule joining an `attach` dataset's controller points.
 //! Later stages add effect parameters by implementing [`Family`]. [`widen_threshold_range`]
 //! lets the spring threshold reach past the reference range where tracked points are sparser
 //! than it assumes.
@@ -32,7 +33,10 @@ mod family;
 mod refine;
 mod run;
 
-pub use family::{BackboneFamily, Family, GAP_REACH, widen_threshold_range};
+pub use family::{
+    BackboneFamily, CONTROLLER_RADIUS_RANGE_M, CONTROLLER_SPRINGS_RANGE, ControllerFamily, Family,
+    GAP_REACH, widen_threshold_range,
+};
 pub use refine::{
     ModelOptions, RefineConfig, RefineOutcome, RefineStep, batch_gradient, field_options,
     refine_stiffness, scene_gradient,

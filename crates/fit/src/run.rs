@@ -251,8 +251,8 @@ fn search_box(params: &cmaes::Parameters) -> Vec<[f64; 2]> {
 }
 
 /// Loss of one candidate on one scene: mean squared position error, or [`PENALTY`].
-pub fn scene_loss<F: Family>(family: &F, real: &[f64], scene: &Scene) -> f64 {
-    let (params, options) = family.build(real);
+pub fn scene_loss<F: Family + ?Sized>(family: &F, real: &[f64], scene: &Scene) -> f64 {
+    let (params, options) = family.build_for(real, scene);
     let loss = scene
         .rollout(&params, &scene.sim_config(), options)
         .and_then(|pred| scene::position_mse(scene, &pred));

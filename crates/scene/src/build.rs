@@ -55,6 +55,10 @@ pub struct SceneConfig {
     /// reference's springs: every pair within the radius. Set it with
     /// [`SceneConfig::with_material_pairs_of`] (docs/pipelines.md, "Material springs").
     pub material_pairs: Option<Arc<MaterialPairs>>,
+    /// For an `attach` dataset: join its grippers' particles by this rule instead of the
+    /// dataset's own `controller_springs` (a run whose fit searched the rule, `fit
+    /// --fit-controller`). `None` (the default) uses the dataset's.
+    pub controller_springs: Option<dataset::ControllerSprings>,
 }
 
 impl SceneConfig {
@@ -97,6 +101,7 @@ impl Default for SceneConfig {
             carry_occluded: true,
             unseen: None,
             material_pairs: None,
+            controller_springs: None,
         }
     }
 }
@@ -228,7 +233,8 @@ impl Scene {
             // it to the object particles near it by the dataset's controller rule, or else as
             // any two particles.
             let first = x.len() as u32;
-            anchors = meta.controller_springs.map(|rule| springs::AnchorSprings {
+            let rule = config.controller_springs.or(meta.controller_springs);
+            anchors = rule.map(|rule| springs::AnchorSprings {
                 particles: (first..first + episode.grippers() as u32).collect(),
                 radius_m: rule.radius_m,
                 max_springs: rule.max_springs,
@@ -318,6 +324,13 @@ impl Scene {
     /// The simulator settings this scene's dataset implies (step, gravity, ground, grippers).
     pub fn sim_config(&self) -> SimConfig {
         self.config
+    }
+
+    /// The particles joined to the object by a controller rule of their own, and that rule:
+    /// an `attach` scene's grippers when its dataset (or [`SceneConfig::controller_springs`])
+    /// gives one; `None` otherwise.
+    pub fn anchors(&self) -> Option<&springs::AnchorSprings> {
+        self.anchors.as_ref()
     }
 
     /// Number of simulated particles (tracked + hidden/interior).

@@ -531,6 +531,7 @@ fn base_model(
         refined: None,
         substep: args.substep,
         material_springs: false,
+        controller_springs: None,
     };
     let run = args.work.join(format!("{object}-base"));
     std::fs::create_dir_all(&run)?;
