@@ -141,9 +141,9 @@ pub fn run(args: &FitArgs) -> anyhow::Result<BackboneFile> {
         anyhow::ensure!(
             data.meta.manipulation == dataset::Manipulation::Attach,
             "--fit-controller searches how an `attach` dataset's controller points join the \
-             object, and {} is a {:?} dataset (its grippers have no springs of their own)",
+             object, and {} is a `{}` dataset (its grippers have no springs of their own)",
             args.data.display(),
-            data.meta.manipulation
+            format!("{:?}", data.meta.manipulation).to_lowercase()
         );
         Some(
             data.meta

@@ -179,7 +179,8 @@ fn import_phystwin(args: &ImportArgs) -> anyhow::Result<()> {
         match opts.controller_springs {
             Some(c) => println!(
                 "controller points join the object by their own rule: up to {} springs within \
-                 {} m each (--controller-radius, --controller-springs)",
+                 {} m each (--controller-radius, --controller-springs; `fit --fit-controller` \
+                 searches it)",
                 c.max_springs, c.radius_m
             ),
             None => println!(
