@@ -487,6 +487,7 @@ fn test_scores(
             visual: false,
             horizon: None,
             autograd: false,
+            save_predictions: None,
         })?;
         report.metrics["mde_cm"]["mean"]
             .as_f64()

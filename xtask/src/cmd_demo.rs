@@ -126,6 +126,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
             visual: false,
             horizon: None,
             autograd: false,
+            save_predictions: None,
         })?;
         // Point clouds of the last predicted step of the first val episode, next to the truth.
         let index = data.split_indices(Split::Val)[0];

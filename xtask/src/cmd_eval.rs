@@ -57,6 +57,12 @@ pub struct EvalArgs {
     /// reproduces to the digit the numbers documented before session 82, which were made so.
     #[arg(long)]
     pub autograd: bool,
+    /// Also write each episode's predicted trajectory beside the recorded one into this
+    /// directory: `ep_<episode>.safetensors` (predicted, recorded and start positions, the
+    /// tracker's visibility and the grippers' path, m) and `predictions.json`, which lists the
+    /// episodes and says what each tensor holds (docs/pipelines.md, "Saved predictions").
+    #[arg(long, value_name = "DIR")]
+    pub save_predictions: Option<PathBuf>,
 }
 
 /// A metric's summary in cm.
@@ -168,6 +174,11 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
         "--visual scores the video of one rollout over the window; --horizon scores many short \
          predictions, which make no video"
     );
+    anyhow::ensure!(
+        !(args.save_predictions.is_some() && args.horizon.is_some()),
+        "--save-predictions writes one rollout over each episode's window; --horizon makes many \
+         short predictions per episode, which it does not save"
+    );
     let data = Dataset::open(&args.data)?;
     let backbone = read_backbone(&args.run)?;
     backbone.note_other_object(&data);
@@ -255,8 +266,12 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
             .with_context(|| format!("episode {i}"))?;
             let errors = scene::score_steps(scene, &pred, with_emd)?;
             let l1 = scene::deform_l1(scene, &pred)?;
-            // The predictions are kept only for the video metrics.
-            let kept = if args.visual { pred } else { Vec::new() };
+            // The predictions are kept only for the video metrics and for saving.
+            let kept = if args.visual || args.save_predictions.is_some() {
+                pred
+            } else {
+                Vec::new()
+            };
             Ok((errors, l1, (*i, scene, kept)))
         })
         .collect();
@@ -407,7 +422,32 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
             chamfer_cm: mean_cm(e, StepErrors::chamfer_two_sided),
             emd_cm: with_emd.then(|| mean_cm(e, |s| s.emd)),
         })
-        .collect();
+        .collect::<Vec<EpisodeScore>>();
+    let saved_predictions = match &args.save_predictions {
+        Some(dir) => {
+            let saved: Vec<crate::eval_save::Saved<'_>> = per_episode
+                .iter()
+                .zip(&episode_scores)
+                .map(
+                    |((_, _, (i, scene, pred)), score)| crate::eval_save::Saved {
+                        episode: *i,
+                        scene,
+                        predicted: pred,
+                        mde_cm: score.mde_cm,
+                    },
+                )
+                .collect();
+            let about = crate::eval_save::About {
+                model: &model_name,
+                dataset: &args.data.display().to_string(),
+                split: &split,
+                protocol: protocol.name(),
+                step_s: data.meta.step_dt(),
+            };
+            Some(crate::eval_save::write(dir, &about, &saved)?)
+        }
+        None => None,
+    };
     let report = EvalReport {
         model: model_name.clone(),
         variant: net.as_ref().map(|n| n.config().variant()),
@@ -477,6 +517,13 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
         report.wall_s,
         json.display(),
     );
+    if let Some(index) = saved_predictions {
+        println!(
+            "saved the predicted and recorded trajectories of {} episodes -> {}",
+            report.episodes,
+            index.display()
+        );
+    }
     anyhow::ensure!(
         diverged == 0,
         "{diverged} rollouts diverged (see warnings above)"

@@ -258,6 +258,7 @@ fn score(
         visual: false,
         horizon: None,
         autograd: false,
+        save_predictions: None,
     })?;
     Ok((read_eval(&json)?, false))
 }
@@ -543,6 +544,7 @@ mod tests {
             visual: false,
             horizon: None,
             autograd: false,
+            save_predictions: None,
         })
         .unwrap();
         assert_eq!(

@@ -1101,6 +1101,7 @@ mod tests {
             visual: false,
             horizon: None,
             autograd: false,
+            save_predictions: None,
         };
         let Err(err) = crate::cmd_eval::run(&eval) else {
             panic!("a network whose every rollout diverges was scored");

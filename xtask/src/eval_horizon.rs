@@ -191,6 +191,7 @@ mod tests {
             visual: false,
             horizon,
             autograd,
+            save_predictions: None,
         })
     }
 

@@ -26,6 +26,7 @@ mod cmd_train;
 mod common;
 mod demo_tour;
 mod eval_horizon;
+mod eval_save;
 mod report;
 mod staged;
 mod train_choice;
