@@ -323,15 +323,17 @@ impl Selection {
     /// so a run that keeps it predicts exactly as the backbone (an untrained network is only
     /// close to it). A run fine-tuned from another network (`--init-from`) starts at that
     /// network instead.
+    /// Returns a line saying what the check found (`None` when this step was already
+    /// checked).
     fn record(
         &mut self,
         held: &TrainSet,
         trainer: &Trainer,
         run: &Path,
         first_is_backbone: bool,
-    ) -> anyhow::Result<()> {
+    ) -> anyhow::Result<Option<String>> {
         if self.steps.last() == Some(&trainer.step) {
-            return Ok(());
+            return Ok(None);
         }
         let quiet = match (self.steps.is_empty() && first_is_backbone, trainer.step) {
             (true, 0) => Some(trainer.with_averaged(|net| net.without_residual())??),
@@ -344,7 +346,11 @@ impl Selection {
         let mde = per_episode.iter().sum::<f64>() / per_episode.len().max(1) as f64;
         self.steps.push(trainer.step);
         self.mde_cm.push(mde.is_finite().then_some(mde));
-        if self.steps.len() == 1 || clearly_better(&per_episode, &self.best_episode_mde_cm) {
+        let diverged = per_episode.iter().filter(|m| !m.is_finite()).count();
+        let held_out = per_episode.len();
+        let selected =
+            self.steps.len() == 1 || clearly_better(&per_episode, &self.best_episode_mde_cm);
+        if selected {
             self.best_step = trainer.step;
             self.best_episode_mde_cm = per_episode;
             let path = run.join("residual.safetensors");
@@ -353,7 +359,21 @@ impl Selection {
                 None => trainer.with_averaged(|net| net.save(&path))??,
             }
         }
-        Ok(())
+        let score = if diverged > 0 {
+            format!("{diverged} of {held_out} held-out rollouts diverged")
+        } else {
+            format!("held-out rollout MDE {mde:.3} cm")
+        };
+        Ok(Some(format!(
+            "step {}: {score} (backbone {:.3} cm); {}",
+            trainer.step,
+            self.backbone_mde_cm,
+            if selected {
+                "selected".to_string()
+            } else {
+                format!("step {} stays selected", self.best_step)
+            }
+        )))
     }
 }
 
@@ -708,6 +728,9 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
         "{prefix}{bar:30} {pos}/{len} {msg} [{elapsed} < {eta}]",
     )?);
     bar.set_position(trainer.step as u64);
+    let plain_progress = !args.quiet
+        && args.progress.is_none()
+        && !std::io::IsTerminal::is_terminal(&std::io::stderr());
     let t_train = Instant::now();
     if let Some(held) = &held {
         let mut sel = match selection.take() {
@@ -731,8 +754,11 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
         // resumed one goes on at its next scheduled check, so that a run interrupted after a
         // checkpoint and resumed makes the same checks, and the same choice, as one that ran
         // through (an extra check between two scheduled ones can change which network wins).
-        if sel.steps.is_empty() {
-            sel.record(held, &trainer, &args.run, init_from.is_none())?;
+        if sel.steps.is_empty()
+            && let Some(line) = sel.record(held, &trainer, &args.run, init_from.is_none())?
+            && !args.quiet
+        {
+            say(args, line);
         }
         selection = Some(sel);
     }
@@ -796,20 +822,7 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
                 base_loss.push(s.backbone_loss);
                 gnorm.push(s.grad_norm);
                 lrs.push(s.lr);
-                let n = loss.len().min(20);
-                let recent = loss[loss.len() - n..]
-                    .iter()
-                    .filter(|l| l.is_finite())
-                    .sum::<f64>()
-                    / n as f64;
-                let ratio = loss_ratio(
-                    &loss,
-                    &base_loss,
-                    loss.len().saturating_sub(100)..loss.len(),
-                );
-                bar.set_message(format!(
-                    "loss {recent:.4} {unit}, {ratio:.3} x backbone (last 100)"
-                ));
+                bar.set_message(loss_summary(&loss, &base_loss, unit));
                 bar.set_position(trainer.step as u64);
             }
             Err(ResidualError::Diverged { step, what }) => {
@@ -837,10 +850,25 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
         }
         if let (Some(held), Some(sel)) = (&held, &mut selection)
             && trainer.step % sel.every == 0
+            && let Some(line) = sel.record(held, &trainer, &args.run, init_from.is_none())?
+            && !args.quiet
         {
-            sel.record(held, &trainer, &args.run, init_from.is_none())?;
+            say(args, line);
         }
         if trainer.step % args.checkpoint_every.max(1) == 0 {
+            // Without a terminal the bar is hidden: a log still shows how training goes.
+            if plain_progress {
+                say(
+                    args,
+                    format!(
+                        "step {}/{}: {} ({:.0} s)",
+                        trainer.step,
+                        args.iterations,
+                        loss_summary(&loss, &base_loss, unit),
+                        prior_wall + t_train.elapsed().as_secs_f64()
+                    ),
+                );
+            }
             save(
                 &trainer,
                 &loss,
@@ -861,8 +889,11 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
         }
     }
     bar.finish_and_clear();
-    if let (Some(held), Some(sel)) = (&held, &mut selection) {
-        sel.record(held, &trainer, &args.run, init_from.is_none())?;
+    if let (Some(held), Some(sel)) = (&held, &mut selection)
+        && let Some(line) = sel.record(held, &trainer, &args.run, init_from.is_none())?
+        && !args.quiet
+    {
+        say(args, line);
     }
     save(
         &trainer,
@@ -959,6 +990,19 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
         "training {status} (the run's train.json records it; residual.safetensors holds the last finite parameters)"
     );
     Ok(())
+}
+
+/// The mean training loss of the last 20 optimiser steps and its ratio to the backbone's
+/// over the last 100, as the progress bar shows them.
+fn loss_summary(loss: &[f64], base_loss: &[f64], unit: &str) -> String {
+    let n = loss.len().min(20);
+    let recent = loss[loss.len() - n..]
+        .iter()
+        .filter(|l| l.is_finite())
+        .sum::<f64>()
+        / n.max(1) as f64;
+    let ratio = loss_ratio(loss, base_loss, loss.len().saturating_sub(100)..loss.len());
+    format!("loss {recent:.4} {unit}, {ratio:.3} x backbone (last 100)")
 }
 
 /// Prints a result line on stdout, without tearing the progress bars of candidates training at
