@@ -10,8 +10,8 @@ use indicatif::{ProgressBar, ProgressStyle};
 use scene::Scene;
 
 use crate::common::{
-    BackboneFile, ProtocolArg, SceneSetting, SubstepArg, backbone_path, note_glued_springs, scenes,
-    warn_if_unconnected,
+    BackboneFile, PlainProgress, ProtocolArg, SceneSetting, SubstepArg, backbone_path,
+    note_glued_springs, scenes, warn_if_unconnected,
 };
 use crate::report::write_json;
 
@@ -185,12 +185,17 @@ pub fn run(args: &FitArgs) -> anyhow::Result<BackboneFile> {
     bar.set_style(ProgressStyle::with_template(
         "fit {bar:30} {pos}/{len} generations  {msg}  [{elapsed} < {eta}]",
     )?);
+    let mut plain = PlainProgress::new(args.quiet);
     let mut progress = |g: &fit::Generation| {
         bar.set_position(g.index as u64 + 1);
-        bar.set_message(format!(
+        let line = format!(
             "best {:.3e} m² (gen {:.3e}, {} diverged, {:.1} s)",
             g.best_so_far, g.best_loss, g.diverged, g.wall_s
-        ));
+        );
+        if plain.as_mut().is_some_and(PlainProgress::due) {
+            println!("generation {}/{}: {line}", g.index + 1, config.generations);
+        }
+        bar.set_message(line);
     };
     let ck = Some(checkpoint.as_path());
     let outcome = match controller_start {

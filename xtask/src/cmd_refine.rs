@@ -105,6 +105,7 @@ pub fn run(args: &RefineArgs) -> anyhow::Result<()> {
     // The run's effects, if any, at their fitted values: the field is refined on top of them
     // (refused when the adjoint would hold one of them fixed).
     let model = file.options_for(&data, args.protocol.into())?;
+    let mut plain = crate::common::PlainProgress::new(args.quiet);
     let outcome = fit::refine_stiffness(
         &scenes,
         &file.params,
@@ -115,6 +116,19 @@ pub fn run(args: &RefineArgs) -> anyhow::Result<()> {
             bar.set_position(s.iteration as u64 + 1);
             if s.train_loss_m2.is_some() {
                 last_check = s.train_loss_m2;
+                // A full check is the line a log wants; the bar shows every step.
+                if plain
+                    .as_mut()
+                    .is_some_and(crate::common::PlainProgress::due)
+                {
+                    println!(
+                        "iteration {}/{}: all train {:.3e} m², |grad| {:.2e}",
+                        s.iteration + 1,
+                        config.iterations,
+                        last_check.unwrap_or(f64::NAN),
+                        s.grad_norm
+                    );
+                }
             }
             bar.set_message(format!(
                 "batch {:.3e} m², all train {}, |grad| {:.2e}{}",

@@ -728,9 +728,8 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
         "{prefix}{bar:30} {pos}/{len} {msg} [{elapsed} < {eta}]",
     )?);
     bar.set_position(trainer.step as u64);
-    let plain_progress = !args.quiet
-        && args.progress.is_none()
-        && !std::io::IsTerminal::is_terminal(&std::io::stderr());
+    let mut plain_progress =
+        crate::common::PlainProgress::new(args.quiet || args.progress.is_some());
     let t_train = Instant::now();
     if let Some(held) = &held {
         let mut sel = match selection.take() {
@@ -857,7 +856,10 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
         }
         if trainer.step % args.checkpoint_every.max(1) == 0 {
             // Without a terminal the bar is hidden: a log still shows how training goes.
-            if plain_progress {
+            if plain_progress
+                .as_mut()
+                .is_some_and(crate::common::PlainProgress::due)
+            {
                 say(
                     args,
                     format!(

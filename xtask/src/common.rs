@@ -487,3 +487,35 @@ pub fn parse_minutes(text: &str) -> Result<f64, String> {
         Err(format!("{v} minutes: must be finite and >= 0"))
     }
 }
+
+/// Plain progress lines for a command whose progress bar nobody sees: stderr (where the bar
+/// draws) is not a terminal, so a job writing to a log would otherwise say nothing until it
+/// ends. At most one line per [`PlainProgress::EVERY_S`], so short runs stay quiet.
+pub struct PlainProgress {
+    last: Option<std::time::Instant>,
+}
+
+impl PlainProgress {
+    /// Seconds between two lines.
+    pub const EVERY_S: f64 = 10.0;
+
+    /// Lines for a command that is not `quiet` and whose stderr is not a terminal; `None`
+    /// otherwise.
+    pub fn new(quiet: bool) -> Option<Self> {
+        (!quiet && !std::io::IsTerminal::is_terminal(&std::io::stderr())).then(|| PlainProgress {
+            last: Some(std::time::Instant::now()),
+        })
+    }
+
+    /// Whether a line is due now (and, if so, counts it as printed).
+    pub fn due(&mut self) -> bool {
+        let now = std::time::Instant::now();
+        let due = self
+            .last
+            .is_none_or(|t| now.duration_since(t).as_secs_f64() >= Self::EVERY_S);
+        if due {
+            self.last = Some(now);
+        }
+        due
+    }
+}
