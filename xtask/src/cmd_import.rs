@@ -51,6 +51,14 @@ pub struct ImportArgs {
     /// and spring count instead of a rule of their own (pgrd before 2026-12-07).
     #[arg(long, conflicts_with_all = ["controller_radius", "controller_springs"])]
     controller_like_object: bool,
+    /// `phystwin` with attach: take the controller rule PhysTwin fitted for this case from its
+    /// `optimal_params.pkl` (`controller_radius`, `controller_max_neighbours`).
+    #[arg(
+        long,
+        value_name = "PKL",
+        conflicts_with_all = ["controller_radius", "controller_springs", "controller_like_object"]
+    )]
+    optimal_params: Option<PathBuf>,
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]
@@ -82,11 +90,13 @@ pub fn run(args: &ImportArgs) -> anyhow::Result<()> {
                 || args.gripper_radius.is_some()
                 || args.controller_radius.is_some()
                 || args.controller_springs.is_some()
-                || args.controller_like_object;
+                || args.controller_like_object
+                || args.optimal_params.is_some();
             anyhow::ensure!(
                 !phystwin_only,
                 "--every, --episode-frames, --stride-frames, --manipulation, --gripper-radius and \
-                 the --controller-* flags apply to `import phystwin` only (DEFORM's files are \
+                 the --controller-* and --optimal-params flags apply to `import phystwin` only \
+             (DEFORM's files are \
                  whole episodes already)"
             );
             let t0 = std::time::Instant::now();
@@ -114,6 +124,12 @@ fn import_phystwin(args: &ImportArgs) -> anyhow::Result<()> {
     use dataset::import::phystwin::{self, PhysTwinOptions};
     let t0 = std::time::Instant::now();
     let d = PhysTwinOptions::default();
+    let fitted = match &args.optimal_params {
+        Some(path) => Some(phystwin::read_controller_rule(path).with_context(|| {
+            format!("reading the fitted controller rule from {}", path.display())
+        })?),
+        None => None,
+    };
     let opts = PhysTwinOptions {
         every: args.every.unwrap_or(d.every),
         episode_frames: args.episode_frames.unwrap_or(d.episode_frames),
@@ -126,20 +142,21 @@ fn import_phystwin(args: &ImportArgs) -> anyhow::Result<()> {
         },
         gripper_radius_m: args.gripper_radius.unwrap_or(d.gripper_radius_m),
         controller_springs: (!args.controller_like_object).then(|| {
-            let phystwin = dataset::ControllerSprings::PHYSTWIN;
+            let start = fitted.unwrap_or(dataset::ControllerSprings::PHYSTWIN);
             dataset::ControllerSprings {
-                radius_m: args.controller_radius.unwrap_or(phystwin.radius_m),
-                max_springs: args.controller_springs.unwrap_or(phystwin.max_springs),
+                radius_m: args.controller_radius.unwrap_or(start.radius_m),
+                max_springs: args.controller_springs.unwrap_or(start.max_springs),
             }
         }),
         ..d
     };
     let controller_flags = args.controller_radius.is_some()
         || args.controller_springs.is_some()
-        || args.controller_like_object;
+        || args.controller_like_object
+        || args.optimal_params.is_some();
     anyhow::ensure!(
         !controller_flags || opts.manipulation == dataset::Manipulation::Attach,
-        "the --controller-* flags apply to --manipulation attach only"
+        "the --controller-* flags and --optimal-params apply to --manipulation attach only"
     );
     if let Some(c) = opts.controller_springs {
         anyhow::ensure!(
@@ -179,9 +196,13 @@ fn import_phystwin(args: &ImportArgs) -> anyhow::Result<()> {
         match opts.controller_springs {
             Some(c) => println!(
                 "controller points join the object by their own rule: up to {} springs within \
-                 {} m each (--controller-radius, --controller-springs; `fit --fit-controller` \
-                 searches it)",
-                c.max_springs, c.radius_m
+                 {} m each ({}; `fit --fit-controller` searches it)",
+                c.max_springs,
+                c.radius_m,
+                match &args.optimal_params {
+                    Some(p) => format!("fitted by PhysTwin, from {}", p.display()),
+                    None => "--controller-radius, --controller-springs".to_string(),
+                }
             ),
             None => println!(
                 "controller points join the object by its fitted threshold and spring count"
@@ -344,6 +365,7 @@ mod tests {
             controller_radius: None,
             controller_springs: None,
             controller_like_object: false,
+            optimal_params: None,
         }
     }
 
@@ -381,6 +403,31 @@ mod tests {
         assert_eq!((rule.radius_m, rule.max_springs), (0.025, 7));
         let err = format!("{:#}", run(&attach("bad", Some(0.0))).unwrap_err());
         assert!(err.contains("--controller-radius"), "{err}");
+        // A case's fitted rule, from PhysTwin's optimal_params.pkl.
+        let fitted = |out: &str, manipulation| ImportArgs {
+            manipulation,
+            optimal_params: Some(
+                std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+                    .join("../fixtures/phystwin/rope_lift/optimal_params.pkl"),
+            ),
+            ..phystwin_args(dir.join(out))
+        };
+        run(&fitted("fitted", Some(ManipulationArg::Attach))).unwrap();
+        let data = dataset::Dataset::open(dir.join("fitted")).unwrap();
+        let rule = data.meta.controller_springs.unwrap();
+        assert_eq!((rule.radius_m, rule.max_springs), (0.035, 24));
+        let push = fitted("fitted-push", Some(ManipulationArg::Push));
+        let err = format!("{:#}", run(&push).unwrap_err());
+        assert!(err.contains("attach only"), "{err}");
+        let err = format!(
+            "{:#}",
+            run(&ImportArgs {
+                optimal_params: Some(dir.join("missing.pkl")),
+                ..fitted("missing", Some(ManipulationArg::Attach))
+            })
+            .unwrap_err()
+        );
+        assert!(err.contains("missing.pkl"), "{err}");
         let args = ImportArgs {
             controller_radius: Some(0.03),
             ..phystwin_args(dir.join("push"))

@@ -227,3 +227,16 @@ fn bad_cases_get_clear_errors() {
         .to_string();
     assert!(err.contains("nowhere"), "{err}");
 }
+
+/// PhysTwin's `optimal_params.pkl` (numpy scalars and Python ints, written by numpy as
+/// `make_params.py` says) gives the controller rule it fitted; other pickles are refused.
+#[test]
+fn the_fitted_controller_rule_is_read_from_optimal_params() {
+    let rule = phystwin::read_controller_rule(&case().join("optimal_params.pkl")).unwrap();
+    assert_eq!((rule.radius_m, rule.max_springs), (0.035, 24));
+    // final_data.pkl is a dict too, without the rule.
+    let err = phystwin::read_controller_rule(&case().join("final_data.pkl"))
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("controller_radius"), "{err}");
+}

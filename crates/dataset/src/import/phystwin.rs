@@ -147,6 +147,53 @@ fn first_non_finite(points: &[Vec3], keep: impl Fn(usize) -> bool) -> Option<usi
     (0..points.len()).find(|k| keep(*k) && !points[*k].is_finite())
 }
 
+/// The controller rule a PhysTwin case was fitted with: `controller_radius` (m) and
+/// `controller_max_neighbours` from the `optimal_params.pkl` its first stage writes (a pickled
+/// dict of Python and numpy numbers). Its other entries are PhysTwin's own model's and are not
+/// read: pgrd's backbone fits its own.
+pub fn read_controller_rule(path: &Path) -> Result<ControllerSprings> {
+    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    let data = pickle::parse(&bytes).map_err(|m| Error::invalid(path, m))?;
+    if !matches!(data, Value::Dict(_)) {
+        return Err(Error::invalid(
+            path,
+            "expected a pickled dict of parameters (PhysTwin's optimal_params.pkl)",
+        ));
+    }
+    let number = |key: &str| -> Result<f64> {
+        let value = data.get(key).ok_or_else(|| {
+            Error::invalid(
+                path,
+                format!("no '{key}': is this PhysTwin's optimal_params.pkl?"),
+            )
+        })?;
+        let x = match value {
+            Value::Array(a) if a.shape.is_empty() && a.len() == 1 => a.to_f64().first().copied(),
+            other => other.as_f64(),
+        };
+        x.ok_or_else(|| Error::invalid(path, format!("'{key}' is not a number")))
+    };
+    let radius = number("controller_radius")?;
+    let count = number("controller_max_neighbours")?;
+    if !(radius.is_finite() && radius > 0.0) {
+        return Err(Error::invalid(
+            path,
+            format!("'controller_radius' must be a positive number of metres, got {radius}"),
+        ));
+    }
+    if !(count.is_finite() && count >= 1.0 && count.fract() == 0.0 && count <= f64::from(u32::MAX))
+    {
+        return Err(Error::invalid(
+            path,
+            format!("'controller_max_neighbours' must be a whole number >= 1, got {count}"),
+        ));
+    }
+    Ok(ControllerSprings {
+        radius_m: radius as f32,
+        max_springs: count as u32,
+    })
+}
+
 /// Reads a PhysTwin `final_data.pkl` (see the module docs).
 pub fn read_capture(path: &Path) -> Result<Capture> {
     let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
