@@ -85,7 +85,17 @@ fn stages(p: &TourPaths, iterations: usize) -> Vec<Stage> {
                 "--quiet",
             ],
         ),
-        stage(Command::Eval, &["--data", &data, "--run", &run]),
+        stage(
+            Command::Eval,
+            &[
+                "--data",
+                &data,
+                "--run",
+                &run,
+                "--save-predictions",
+                &out("predictions"),
+            ],
+        ),
         stage(
             Command::Render,
             &["--data", &data, "--run", &run, "--out", &out("render")],
@@ -172,8 +182,9 @@ pub fn run(p: &TourPaths, iterations: usize, backbone_mde_cm: f64) -> anyhow::Re
     }
     println!(
         "\nthe tour wrote under {}: run/ (backbone.json, residual.safetensors, train.json, \
-         eval_pgrd_val.json), render/ (frames and compare.gif), report/report.html (open it in a \
-         browser), plan/ (rope-lift.json, .svg and a GIF per model) ({:.1} s)",
+         eval_pgrd_val.json), predictions/ (each val episode's predicted and recorded \
+         trajectories, safetensors), render/ (frames and compare.gif), report/report.html (open \
+         it in a browser), plan/ (rope-lift.json, .svg and a GIF per model) ({:.1} s)",
         p.out.display(),
         t0.elapsed().as_secs_f64()
     );
