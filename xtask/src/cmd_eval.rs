@@ -278,16 +278,21 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
     let rollout_wall_s = t_roll.elapsed().as_secs_f64();
     let mut per_episode = Vec::new();
     let mut diverged = 0;
-    for r in results {
+    // Episodes left out of the scores, for the saved predictions' index.
+    let (mut diverged_episodes, mut unseen_episodes) = (Vec::new(), Vec::new());
+    for (r, (i, _)) in results.into_iter().zip(&scenes) {
         match r {
-            Ok(v) if v.0.iter().all(Option::is_none) => eprintln!(
-                "warning: episode {}: the tracker saw no tracked point in any predicted frame; \
-                 not scored",
-                (v.2).0
-            ),
+            Ok(v) if v.0.iter().all(Option::is_none) => {
+                unseen_episodes.push(*i);
+                eprintln!(
+                    "warning: episode {i}: the tracker saw no tracked point in any predicted \
+                     frame; not scored"
+                )
+            }
             Ok(v) => per_episode.push(v),
             Err(e) => {
                 diverged += 1;
+                diverged_episodes.push(*i);
                 eprintln!("warning: {e:#}");
             }
         }
@@ -443,6 +448,8 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
                 split: &split,
                 protocol: protocol.name(),
                 step_s: data.meta.step_dt(),
+                diverged: &diverged_episodes,
+                unseen: &unseen_episodes,
             };
             Some(crate::eval_save::write(dir, &about, &saved)?)
         }

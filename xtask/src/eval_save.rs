@@ -36,6 +36,10 @@ struct Index<'a> {
     /// Tensors in every episode file, with their shapes and meaning.
     tensors: [&'static str; 5],
     episodes: Vec<Entry>,
+    /// Episodes of the split whose rollout diverged: no file.
+    diverged: &'a [usize],
+    /// Episodes of the split the tracker saw nothing of in the window: not scored, no file.
+    unseen: &'a [usize],
 }
 
 /// One scored episode: its index in the dataset, its scene, the predicted tracked positions
@@ -63,6 +67,10 @@ pub struct About<'a> {
     pub protocol: &'a str,
     /// Seconds per model step.
     pub step_s: f32,
+    /// Episodes whose rollout diverged (no file: nothing to save).
+    pub diverged: &'a [usize],
+    /// Episodes the tracker saw no point of in any predicted frame (not scored, no file).
+    pub unseen: &'a [usize],
 }
 
 fn f32_bytes(values: impl Iterator<Item = f32>) -> Vec<u8> {
@@ -158,6 +166,8 @@ pub fn write(dir: &Path, about: &About<'_>, saved: &[Saved<'_>]) -> anyhow::Resu
             "grippers [steps + 1, grippers, 3] f32: the gripper positions driving the rollout, frames start_frame ..= start_frame + steps, m",
         ],
         episodes,
+        diverged: about.diverged,
+        unseen: about.unseen,
     };
     let path = dir.join(INDEX);
     crate::report::write_json(&path, &index)?;
@@ -208,6 +218,7 @@ mod tests {
         let episodes = index["episodes"].as_array().unwrap();
         assert_eq!(episodes.len(), report.per_episode.len());
         assert_eq!(index["model"], "spring-mass");
+        assert_eq!(index["diverged"], serde_json::json!([]));
         for (entry, score) in episodes.iter().zip(&report.per_episode) {
             assert_eq!(entry["episode"], score.episode);
             let bytes = std::fs::read(out.join(entry["file"].as_str().unwrap())).unwrap();
