@@ -228,11 +228,6 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
         NetworkPath::ForwardOnly
     };
     let t_roll = Instant::now();
-    type Scored<'a> = (
-        Vec<Option<StepErrors>>,
-        f64,
-        (usize, &'a scene::Scene, Vec<Vec<glam::Vec3>>),
-    );
     let results: Vec<anyhow::Result<Scored<'_>>> = scenes
         .par_iter()
         .zip(&histories)
@@ -297,26 +292,135 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
             }
         }
     }
+    let json = args.json.clone().unwrap_or_else(|| {
+        args.run.join(format!(
+            "{}.json",
+            stem(&model_name, args.split, args.horizon)
+        ))
+    });
+    let plot = args.plot.clone().unwrap_or_else(|| {
+        args.run.join(format!(
+            "{}.svg",
+            stem(&model_name, args.split, args.horizon)
+        ))
+    });
+    let spec = ReportSpec {
+        model: model_name,
+        variant: net.as_ref().map(|n| n.config().variant()),
+        backbone: backbone.label(),
+        data: &data,
+        dataset: args.data.display().to_string(),
+        split: args.split,
+        protocol,
+        horizon: args.horizon,
+        with_emd,
+        visual: args.visual,
+        json,
+        plot,
+        network_path: net.as_ref().map(|_| path.label()),
+        rollout_wall_s,
+        started: t0,
+    };
+    let report = write_report(&spec, &per_episode, diverged)?;
+    let saved_predictions = match &args.save_predictions {
+        Some(dir) => {
+            let saved: Vec<crate::eval_save::Saved<'_>> = per_episode
+                .iter()
+                .zip(&report.per_episode)
+                .map(
+                    |((_, _, (i, scene, pred)), score)| crate::eval_save::Saved {
+                        episode: *i,
+                        scene,
+                        predicted: pred,
+                        mde_cm: score.mde_cm,
+                    },
+                )
+                .collect();
+            let about = crate::eval_save::About {
+                model: &spec.model,
+                dataset: &args.data.display().to_string(),
+                split: &spec.split.to_string(),
+                protocol: protocol.name(),
+                step_s: data.meta.step_dt(),
+                diverged: &diverged_episodes,
+                unseen: &unseen_episodes,
+            };
+            Some(crate::eval_save::write(dir, &about, &saved)?)
+        }
+        None => None,
+    };
+    if let Some(index) = saved_predictions {
+        println!(
+            "saved the predicted and recorded trajectories of {} episodes -> {}",
+            report.episodes,
+            index.display()
+        );
+    }
+    anyhow::ensure!(
+        diverged == 0,
+        "{diverged} rollouts diverged (see warnings above)"
+    );
+    Ok(report)
+}
+
+/// One scored episode: its per-step errors, DEFORM's L1 score, and its index, scene and
+/// prediction (the prediction kept only where it is needed after scoring).
+pub(crate) type Scored<'a> = (
+    Vec<Option<StepErrors>>,
+    f64,
+    (usize, &'a scene::Scene, Vec<Vec<glam::Vec3>>),
+);
+
+/// What a report describes and where it goes (`eval`'s, and `score`'s for predictions made
+/// elsewhere).
+pub(crate) struct ReportSpec<'a> {
+    /// The model's name in the report.
+    pub model: String,
+    /// The residual network's ablation variant, if any.
+    pub variant: Option<String>,
+    /// The backbone's label.
+    pub backbone: String,
+    /// The dataset, and its directory as given.
+    pub data: &'a Dataset,
+    pub dataset: String,
+    pub split: Split,
+    pub protocol: Protocol,
+    pub horizon: Option<usize>,
+    pub with_emd: bool,
+    /// Also score the video metrics (the predictions must be kept).
+    pub visual: bool,
+    pub json: PathBuf,
+    pub plot: PathBuf,
+    pub network_path: Option<&'static str>,
+    pub rollout_wall_s: f64,
+    /// When the command started (for the report's wall time).
+    pub started: Instant,
+}
+
+/// Summarises scored episodes the paper's way, writes the JSON report and the plot, and prints
+/// the summary line; an error when nothing could be scored (the JSON then says why).
+pub(crate) fn write_report(
+    spec: &ReportSpec<'_>,
+    per_episode: &[Scored<'_>],
+    diverged: usize,
+) -> anyhow::Result<EvalReport> {
+    let (model_name, data, protocol, with_emd) =
+        (spec.model.as_str(), spec.data, spec.protocol, spec.with_emd);
     anyhow::ensure!(
         !per_episode.is_empty() || diverged > 0,
         "{model_name}: the tracker saw no tracked point in any predicted frame of any episode: \
          nothing to score"
     );
     if per_episode.is_empty() {
-        let json = args.json.clone().unwrap_or_else(|| {
-            args.run.join(format!(
-                "{}.json",
-                stem(&model_name, args.split, args.horizon)
-            ))
-        });
+        let json = spec.json.clone();
         write_json(
             &json,
             &serde_json::json!({
                 "model": model_name,
-                "variant": net.as_ref().map(|n| n.config().variant()),
-                "dataset": args.data.display().to_string(),
+                "variant": spec.variant.clone(),
+                "dataset": spec.dataset.to_string(),
                 "object": data.meta.object,
-                "split": args.split.to_string(),
+                "split": spec.split.to_string(),
                 "protocol": protocol.name(),
                 "episodes": 0,
                 "diverged": diverged,
@@ -387,21 +491,16 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
             "convention": "DEFORM: mean |coordinate error| over all markers (driven included), summed over steps / frames"
         });
     }
-    if args.visual {
+    if spec.visual {
         let predictions: Vec<_> = per_episode.iter().map(|(_, _, p)| p.clone()).collect();
         metrics["visual"] = crate::cmd_render::visual_metrics(
-            &data,
+            data,
             &predictions,
             &crate::cmd_render::VideoOptions::default(),
         )?;
     }
-    let split = args.split.to_string();
-    let plot = args.plot.clone().unwrap_or_else(|| {
-        args.run.join(format!(
-            "{}.svg",
-            stem(&model_name, args.split, args.horizon)
-        ))
-    });
+    let split = spec.split.to_string();
+    let plot = spec.plot.clone();
     plot_curves(
         &plot,
         &format!(
@@ -428,58 +527,26 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
             emd_cm: with_emd.then(|| mean_cm(e, |s| s.emd)),
         })
         .collect::<Vec<EpisodeScore>>();
-    let saved_predictions = match &args.save_predictions {
-        Some(dir) => {
-            let saved: Vec<crate::eval_save::Saved<'_>> = per_episode
-                .iter()
-                .zip(&episode_scores)
-                .map(
-                    |((_, _, (i, scene, pred)), score)| crate::eval_save::Saved {
-                        episode: *i,
-                        scene,
-                        predicted: pred,
-                        mde_cm: score.mde_cm,
-                    },
-                )
-                .collect();
-            let about = crate::eval_save::About {
-                model: &model_name,
-                dataset: &args.data.display().to_string(),
-                split: &split,
-                protocol: protocol.name(),
-                step_s: data.meta.step_dt(),
-                diverged: &diverged_episodes,
-                unseen: &unseen_episodes,
-            };
-            Some(crate::eval_save::write(dir, &about, &saved)?)
-        }
-        None => None,
-    };
     let report = EvalReport {
-        model: model_name.clone(),
-        variant: net.as_ref().map(|n| n.config().variant()),
-        backbone: backbone.label(),
-        dataset: args.data.display().to_string(),
+        model: model_name.to_string(),
+        variant: spec.variant.clone(),
+        backbone: spec.backbone.clone(),
+        dataset: spec.dataset.to_string(),
         object: data.meta.object.clone(),
         split: split.clone(),
         protocol: protocol.name().into(),
         episodes: per_episode.len(),
         steps: mde_steps.len(),
-        horizon: args.horizon,
+        horizon: spec.horizon,
         metrics,
         per_step_cm: per_step,
         per_episode: episode_scores,
         diverged,
-        network_path: net.as_ref().map(|_| path.label()),
-        rollout_wall_s,
-        wall_s: t0.elapsed().as_secs_f64(),
+        network_path: spec.network_path,
+        rollout_wall_s: spec.rollout_wall_s,
+        wall_s: spec.started.elapsed().as_secs_f64(),
     };
-    let json = args.json.clone().unwrap_or_else(|| {
-        args.run.join(format!(
-            "{}.json",
-            stem(&model_name, args.split, args.horizon)
-        ))
-    });
+    let json = spec.json.clone();
     write_json(&json, &report)?;
     let m = &report.metrics;
     let emd_text = m
@@ -523,17 +590,6 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
             .unwrap_or_default(),
         report.wall_s,
         json.display(),
-    );
-    if let Some(index) = saved_predictions {
-        println!(
-            "saved the predicted and recorded trajectories of {} episodes -> {}",
-            report.episodes,
-            index.display()
-        );
-    }
-    anyhow::ensure!(
-        diverged == 0,
-        "{diverged} rollouts diverged (see warnings above)"
     );
     Ok(report)
 }
