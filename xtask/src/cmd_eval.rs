@@ -93,7 +93,7 @@ pub struct EpisodeScore {
 }
 
 /// The report `eval` writes.
-#[derive(Serialize)]
+#[derive(Debug, Serialize)]
 pub struct EvalReport {
     /// Model name ("spring-mass", "spring-mass+<effect>..." for a backbone with effects, or
     /// "pgrd" when `<run>/residual.safetensors` exists).

@@ -21,6 +21,7 @@ mod cmd_metrics;
 mod cmd_plan;
 mod cmd_refine;
 mod cmd_render;
+mod cmd_score;
 mod cmd_screen;
 mod cmd_train;
 mod common;
@@ -65,6 +66,9 @@ enum Command {
     Refine(cmd_refine::RefineArgs),
     /// Evaluate a run's model on a split: MDE, Chamfer, EMD per step.
     Eval(cmd_eval::EvalArgs),
+    /// Score trajectories predicted elsewhere (laid out as `eval --save-predictions` writes
+    /// them) on a dataset's episodes as `eval` scores pgrd's; `compare` pairs the reports.
+    Score(cmd_score::ScoreArgs),
     /// Paired comparison of two eval reports on the same episodes: shrinkage with a bootstrap
     /// interval.
     Compare(cmd_compare::CompareArgs),
@@ -101,6 +105,7 @@ fn main() -> anyhow::Result<()> {
         Command::Fit(args) => cmd_fit::run(&args).map(drop),
         Command::Refine(args) => cmd_refine::run(&args),
         Command::Eval(args) => cmd_eval::run(&args).map(drop),
+        Command::Score(args) => cmd_score::run(&args).map(drop),
         Command::Compare(args) => cmd_compare::run(&args),
         Command::Import(args) => cmd_import::run(&args),
         Command::DevSplit(args) => cmd_import::dev_split(&args),
