@@ -380,18 +380,27 @@ pub(crate) struct ReportSpec<'a> {
     pub variant: Option<String>,
     /// The backbone's label.
     pub backbone: String,
-    /// The dataset, and its directory as given.
+    /// The dataset.
     pub data: &'a Dataset,
+    /// Its directory as given on the command line.
     pub dataset: String,
+    /// The split scored.
     pub split: Split,
+    /// The protocol of the windows.
     pub protocol: Protocol,
+    /// `--horizon K`, if the episodes were scored by K-step predictions.
     pub horizon: Option<usize>,
+    /// Whether the episodes' errors include exact EMD.
     pub with_emd: bool,
     /// Also score the video metrics (the predictions must be kept).
     pub visual: bool,
+    /// Where the JSON report goes.
     pub json: PathBuf,
+    /// Where the error-per-step plot goes.
     pub plot: PathBuf,
+    /// How a residual network was evaluated, if there is one.
     pub network_path: Option<&'static str>,
+    /// Wall time of the rollouts, s.
     pub rollout_wall_s: f64,
     /// When the command started (for the report's wall time).
     pub started: Instant,
