@@ -321,6 +321,20 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
         rollout_wall_s,
         started: t0,
     };
+    let about = crate::eval_save::About {
+        model: &spec.model,
+        dataset: &spec.dataset,
+        split: spec.split,
+        protocol: protocol.name(),
+        step_s: data.meta.step_dt(),
+        diverged: &diverged_episodes,
+        unseen: &unseen_episodes,
+    };
+    // With nothing scored the report is an error; the index still says which episodes
+    // diverged.
+    if let (Some(dir), true) = (&args.save_predictions, per_episode.is_empty()) {
+        crate::eval_save::write(dir, &about, &[])?;
+    }
     let report = write_report(&spec, &per_episode, diverged)?;
     let saved_predictions = match &args.save_predictions {
         Some(dir) => {
@@ -336,15 +350,6 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
                     },
                 )
                 .collect();
-            let about = crate::eval_save::About {
-                model: &spec.model,
-                dataset: &args.data.display().to_string(),
-                split: &spec.split.to_string(),
-                protocol: protocol.name(),
-                step_s: data.meta.step_dt(),
-                diverged: &diverged_episodes,
-                unseen: &unseen_episodes,
-            };
             Some(crate::eval_save::write(dir, &about, &saved)?)
         }
         None => None,

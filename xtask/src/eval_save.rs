@@ -29,7 +29,7 @@ struct Entry {
 struct Index<'a> {
     model: &'a str,
     dataset: &'a str,
-    split: &'a str,
+    split: String,
     protocol: &'a str,
     /// Seconds between consecutive frames of the files.
     step_s: f32,
@@ -62,7 +62,7 @@ pub struct About<'a> {
     /// The dataset directory as given.
     pub dataset: &'a str,
     /// The split scored.
-    pub split: &'a str,
+    pub split: dataset::Split,
     /// The protocol's name.
     pub protocol: &'a str,
     /// Seconds per model step.
@@ -155,7 +155,7 @@ pub fn write(dir: &Path, about: &About<'_>, saved: &[Saved<'_>]) -> anyhow::Resu
     let index = Index {
         model: about.model,
         dataset: about.dataset,
-        split: about.split,
+        split: about.split.to_string(),
         protocol: about.protocol,
         step_s: about.step_s,
         tensors: [
@@ -264,6 +264,32 @@ mod tests {
                 score.mde_cm
             );
         }
+        // Every rollout diverging (gravity a million times too strong, upward): the command
+        // fails, and the index still names the episodes.
+        let strong = root.join("strong");
+        std::fs::create_dir_all(&strong).unwrap();
+        for entry in std::fs::read_dir(FIXTURE_ROPE).unwrap() {
+            let path = entry.unwrap().path();
+            std::fs::copy(&path, strong.join(path.file_name().unwrap())).unwrap();
+        }
+        let meta = strong.join("dataset.json");
+        let mut json: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&meta).unwrap()).unwrap();
+        json["gravity"] = serde_json::json!([0.0, 0.0, 1e6]);
+        std::fs::write(&meta, json.to_string()).unwrap();
+        let dead = root.join("dead");
+        let Err(err) = run(&EvalArgs {
+            data: strong,
+            ..args(Some(dead.clone()), None)
+        }) else {
+            panic!("every rollout diverged, yet eval succeeded");
+        };
+        assert!(format!("{err:#}").contains("diverged"), "{err:#}");
+        let index: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(dead.join(super::INDEX)).unwrap())
+                .unwrap();
+        assert_eq!(index["episodes"], serde_json::json!([]));
+        assert_eq!(index["diverged"], serde_json::json!([3, 4]));
         let Err(err) = run(&args(Some(root.join("h")), Some(3))) else {
             panic!("--save-predictions with --horizon was accepted");
         };
