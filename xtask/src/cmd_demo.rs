@@ -113,6 +113,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
             substep: SubstepArg::Auto,
             material_springs: false,
             fit_controller: false,
+            controller_starts: 3,
             quiet: false,
         })?;
         let report = cmd_eval::run(&EvalArgs {

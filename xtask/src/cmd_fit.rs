@@ -74,6 +74,12 @@ pub struct FitArgs {
     /// rule").
     #[arg(long)]
     pub fit_controller: bool,
+    /// With `--fit-controller`: searches from this many starting radii (1–3: the declared
+    /// radius, then halfway from it to 0.01 m, then halfway to 0.08 m), keeping the one whose
+    /// fit has the lowest loss over every training episode. The radius moves the loss in steps,
+    /// so one search can stall at its start; each start costs a fit.
+    #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u8).range(1..=3))]
+    pub controller_starts: u8,
     /// Print nothing but the final line.
     #[arg(long)]
     pub quiet: bool,
@@ -177,35 +183,57 @@ pub fn run(args: &FitArgs) -> anyhow::Result<BackboneFile> {
         "--population must be >= 2, --samples >= 1 and --generations >= 1"
     );
     let checkpoint = args.run.join("fit.checkpoint.json");
+    let starts = if controller_start.is_some() {
+        usize::from(args.controller_starts)
+    } else {
+        1
+    };
     let bar = if args.quiet {
         ProgressBar::hidden()
     } else {
-        ProgressBar::new(config.generations as u64)
+        ProgressBar::new((starts * config.generations) as u64)
     };
     bar.set_style(ProgressStyle::with_template(
         "fit {bar:30} {pos}/{len} generations  {msg}  [{elapsed} < {eta}]",
     )?);
     let mut plain = PlainProgress::new(args.quiet);
-    let mut progress = |g: &fit::Generation| {
-        bar.set_position(g.index as u64 + 1);
+    let mut progress = |start: usize, g: &fit::Generation| {
+        bar.set_position((start * config.generations + g.index) as u64 + 1);
         let line = format!(
             "best {:.3e} m² (gen {:.3e}, {} diverged, {:.1} s)",
             g.best_so_far, g.best_loss, g.diverged, g.wall_s
         );
         if plain.as_mut().is_some_and(PlainProgress::due) {
-            println!("generation {}/{}: {line}", g.index + 1, config.generations);
+            let of_start = match starts {
+                1 => String::new(),
+                n => format!(" of start {}/{n}", start + 1),
+            };
+            println!(
+                "generation {}/{}{of_start}: {line}",
+                g.index + 1,
+                config.generations
+            );
         }
         bar.set_message(line);
     };
     let ck = Some(checkpoint.as_path());
-    let outcome = match controller_start {
-        Some(start) => {
-            let family = ControllerFamily::new(bounds, start)?;
-            fit::fit(&scenes, &family, &config, ck, &mut progress)?
+    let (outcome, controller_starts) = match controller_start {
+        Some(declared) => {
+            let found = fit::fit_controller(
+                &scenes,
+                bounds,
+                declared,
+                starts,
+                &config,
+                ck,
+                &mut progress,
+            )?;
+            (found.outcome, found.starts)
         }
         None => {
             let family = BackboneFamily::new(bounds)?;
-            fit::fit(&scenes, &family, &config, ck, &mut progress)?
+            let outcome = fit::fit(&scenes, &family, &config, ck, &mut |g| progress(0, g))?;
+            (outcome, Vec::new())
         }
     };
     bar.finish();
@@ -261,6 +289,7 @@ pub fn run(args: &FitArgs) -> anyhow::Result<BackboneFile> {
         substep: args.substep,
         material_springs: args.material_springs,
         controller_springs,
+        controller_starts: controller_starts.clone(),
     };
     write_json(&backbone_path(&args.run), &file)?;
     println!(
@@ -281,6 +310,22 @@ pub fn run(args: &FitArgs) -> anyhow::Result<BackboneFile> {
             "controller points: each joined to up to {} particles within {:.4} m",
             rule.max_springs, rule.radius_m
         );
+        if controller_starts.len() > 1 {
+            let each: Vec<String> = controller_starts
+                .iter()
+                .map(|s| {
+                    format!(
+                        "from {:.4} m: {:.4} m, {} springs, loss {:.3e} m²",
+                        s.start_radius_m, s.found.radius_m, s.found.max_springs, s.train_loss_m2
+                    )
+                })
+                .collect();
+            println!(
+                "  {} starts, the lowest loss over every training episode kept: {}",
+                controller_starts.len(),
+                each.join("; ")
+            );
+        }
     }
     Ok(file)
 }
@@ -309,6 +354,7 @@ impl FitArgs {
             substep: SubstepArg::Auto,
             material_springs: false,
             fit_controller: false,
+            controller_starts: 3,
             quiet: true,
         }
     }
@@ -412,6 +458,15 @@ mod tests {
         assert!((0.01..=0.08).contains(&rule.radius_m), "{rule:?}");
         assert!((10..=80).contains(&rule.max_springs), "{rule:?}");
         assert_eq!(file.fit.names.len(), 7);
+        // Three starts by default, each checkpointed; the kept one has the lowest loss.
+        assert_eq!(file.controller_starts.len(), 3);
+        let kept = file
+            .controller_starts
+            .iter()
+            .min_by(|a, b| a.train_loss_m2.total_cmp(&b.train_loss_m2))
+            .unwrap();
+        assert_eq!(kept.found, rule);
+        assert!(run_dir.join("fit.checkpoint.start2.json").is_file());
         let read = read_backbone(&run_dir).unwrap();
         assert_eq!(read.controller_springs, Some(rule));
         let data = Dataset::open(root.join("data")).unwrap();

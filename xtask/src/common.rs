@@ -198,6 +198,10 @@ pub struct BackboneFile {
     /// builds this run's model uses it.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub controller_springs: Option<dataset::ControllerSprings>,
+    /// Each start of that search (`fit --controller-starts`): where it began, what it found
+    /// and its loss over every training episode; the kept one has the lowest.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub controller_starts: Vec<fit::ControllerStart>,
 }
 
 impl BackboneFile {

@@ -41,7 +41,7 @@ pub trait Family: Sync {
     /// The backbone parameters and options (masses, effects) for a real parameter vector.
     fn build(&self, real: &[f64]) -> (SpringParams, BackboneOptions);
     /// [`build`](Self::build) for one scene: a family whose parameters say how to treat the
-    /// scene's own particles (its anchors' rule, [`ControllerFamily`]) reads them here. Every
+    /// scene's own particles (its anchors' rule, [`ControllerFamily`](crate::ControllerFamily)) reads them here. Every
     /// rollout a fit scores is built by this.
     fn build_for(&self, real: &[f64], scene: &Scene) -> (SpringParams, BackboneOptions) {
         let _ = scene;
@@ -128,104 +128,5 @@ impl Family for BackboneFamily {
 
     fn build(&self, real: &[f64]) -> (SpringParams, BackboneOptions) {
         (Self::params(real), BackboneOptions::default())
-    }
-}
-
-/// PhysTwin's range of the controller points' reach, m (its stage 1 searches 0.01–0.08 m).
-pub const CONTROLLER_RADIUS_RANGE_M: [f32; 2] = [0.01, 0.08];
-
-/// PhysTwin's range of the controller points' spring count (its stage 1 searches 10–80).
-pub const CONTROLLER_SPRINGS_RANGE: [u32; 2] = [10, 80];
-
-/// The paper's five parameters and the rule that joins an `attach` dataset's controller points
-/// to the object (their reach and spring count, [`springs::AnchorSprings`]), searched together
-/// as PhysTwin's first stage does. The rule applies to each scene's own anchors
-/// ([`Scene::anchors`]); a scene without anchors is rolled out as [`BackboneFamily`] would.
-/// The search starts at the paper's box centre for the five and at `start` for the rule.
-///
-/// ```
-/// # use fit::{ControllerFamily, Family};
-/// let start = dataset::ControllerSprings::PHYSTWIN;
-/// let family = ControllerFamily::new(springs::REFERENCE_BOUNDS, start).unwrap();
-/// assert_eq!(family.parameters().dim(), 7);
-/// assert_eq!(ControllerFamily::rule(&family.x0()), start);
-/// ```
-#[derive(Debug, Clone)]
-pub struct ControllerFamily {
-    backbone: BackboneFamily,
-    parameters: Parameters,
-    start: dataset::ControllerSprings,
-}
-
-impl ControllerFamily {
-    /// The family over `bounds` and PhysTwin's ranges of the rule, starting at `start` (held
-    /// inside those ranges).
-    pub fn new(
-        bounds: ParamBounds,
-        start: dataset::ControllerSprings,
-    ) -> Result<Self, cmaes::Error> {
-        let backbone = BackboneFamily::new(bounds)?;
-        let mut all = backbone.parameters.params().to_vec();
-        let [r0, r1] = CONTROLLER_RADIUS_RANGE_M;
-        let [n0, n1] = CONTROLLER_SPRINGS_RANGE;
-        all.push(Parameter::linear(
-            "controller_radius_m",
-            f64::from(r0),
-            f64::from(r1),
-        ));
-        all.push(
-            Parameter::linear("controller_max_springs", f64::from(n0), f64::from(n1)).integer(),
-        );
-        let start = dataset::ControllerSprings {
-            radius_m: start.radius_m.clamp(r0, r1),
-            max_springs: start.max_springs.clamp(n0, n1),
-        };
-        Ok(ControllerFamily {
-            backbone,
-            parameters: Parameters::new(all)?,
-            start,
-        })
-    }
-
-    /// The controller rule in a real parameter vector of this family (entries 5 and 6).
-    pub fn rule(real: &[f64]) -> dataset::ControllerSprings {
-        dataset::ControllerSprings {
-            radius_m: real[5] as f32,
-            max_springs: real[6].round() as u32,
-        }
-    }
-}
-
-impl Family for ControllerFamily {
-    fn name(&self) -> String {
-        "spring-mass+controller".to_string()
-    }
-
-    fn parameters(&self) -> &Parameters {
-        &self.parameters
-    }
-
-    fn x0(&self) -> Vec<f64> {
-        let mut x = self.backbone.x0();
-        x.push(f64::from(self.start.radius_m));
-        x.push(f64::from(self.start.max_springs));
-        x
-    }
-
-    fn build(&self, real: &[f64]) -> (SpringParams, BackboneOptions) {
-        (BackboneFamily::params(real), BackboneOptions::default())
-    }
-
-    fn build_for(&self, real: &[f64], scene: &Scene) -> (SpringParams, BackboneOptions) {
-        let rule = Self::rule(real);
-        let options = BackboneOptions {
-            anchors: scene.anchors().map(|a| springs::AnchorSprings {
-                particles: a.particles.clone(),
-                radius_m: rule.radius_m,
-                max_springs: rule.max_springs,
-            }),
-            ..BackboneOptions::default()
-        };
-        (BackboneFamily::params(real), options)
     }
 }

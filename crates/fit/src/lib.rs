@@ -29,14 +29,16 @@
 //! stiffness that varies over the object, refined by gradient descent through the simulator's
 //! adjoint.
 
+mod controller;
 mod family;
 mod refine;
 mod run;
 
-pub use family::{
-    BackboneFamily, CONTROLLER_RADIUS_RANGE_M, CONTROLLER_SPRINGS_RANGE, ControllerFamily, Family,
-    GAP_REACH, widen_threshold_range,
+pub use controller::{
+    CONTROLLER_RADIUS_RANGE_M, CONTROLLER_SPRINGS_RANGE, ControllerFamily, ControllerFit,
+    ControllerStart, MAX_CONTROLLER_STARTS, controller_start_radii, fit_controller,
 };
+pub use family::{BackboneFamily, Family, GAP_REACH, widen_threshold_range};
 pub use refine::{
     ModelOptions, RefineConfig, RefineOutcome, RefineStep, batch_gradient, field_options,
     refine_stiffness, scene_gradient,

@@ -532,6 +532,7 @@ fn base_model(
         substep: args.substep,
         material_springs: false,
         controller_springs: None,
+        controller_starts: Vec::new(),
     };
     let run = args.work.join(format!("{object}-base"));
     std::fs::create_dir_all(&run)?;
