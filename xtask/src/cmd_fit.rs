@@ -334,6 +334,22 @@ pub fn run(args: &FitArgs) -> anyhow::Result<BackboneFile> {
 #[cfg(test)]
 pub(crate) const FIXTURE_ROPE: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../fixtures/rope");
 
+/// A copy of the rope fixture in `dir` whose gravity is a million times too strong and points
+/// up: data no parameters can simulate, so every rollout diverges. For tests.
+#[cfg(test)]
+pub(crate) fn diverging_rope_fixture(dir: &std::path::Path) {
+    std::fs::create_dir_all(dir).unwrap();
+    for entry in std::fs::read_dir(FIXTURE_ROPE).unwrap() {
+        let path = entry.unwrap().path();
+        std::fs::copy(&path, dir.join(path.file_name().unwrap())).unwrap();
+    }
+    let index = dir.join("dataset.json");
+    let mut json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&index).unwrap()).unwrap();
+    json["gravity"] = serde_json::json!([0.0, 0.0, 1e6]);
+    std::fs::write(&index, json.to_string()).unwrap();
+}
+
 #[cfg(test)]
 impl FitArgs {
     /// The cheapest fit of the rope fixture into `run` (two candidates, one generation, one
@@ -505,16 +521,7 @@ mod tests {
     fn a_fit_whose_every_rollout_diverges_is_an_error() {
         let root = std::env::temp_dir().join(format!("pgrd-fit-diverged-{}", std::process::id()));
         let data = root.join("data");
-        std::fs::create_dir_all(&data).unwrap();
-        for entry in std::fs::read_dir(FIXTURE_ROPE).unwrap() {
-            let path = entry.unwrap().path();
-            std::fs::copy(&path, data.join(path.file_name().unwrap())).unwrap();
-        }
-        let index = data.join("dataset.json");
-        let mut json: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(&index).unwrap()).unwrap();
-        json["gravity"] = serde_json::json!([0.0, 0.0, 1e6]);
-        std::fs::write(&index, json.to_string()).unwrap();
+        diverging_rope_fixture(&data);
         let run_dir = root.join("run");
         let args = FitArgs {
             data: data.clone(),

@@ -76,11 +76,7 @@ fn predicted(bytes: &[u8], scene: &Scene) -> anyhow::Result<Result<Vec<Vec<Vec3>
         t.shape()
     );
     let values: Vec<f32> = match t.dtype() {
-        Dtype::F32 => t
-            .data()
-            .chunks_exact(4)
-            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-            .collect(),
+        Dtype::F32 => crate::eval_save::f32_values(t.data()),
         Dtype::F64 => t
             .data()
             .chunks_exact(8)
@@ -247,11 +243,7 @@ mod tests {
         let bytes = std::fs::read(file).unwrap();
         let st = SafeTensors::deserialize(&bytes).unwrap();
         let t = st.tensor("predicted").unwrap();
-        let mut values: Vec<f32> = t
-            .data()
-            .chunks_exact(4)
-            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-            .collect();
+        let mut values = crate::eval_save::f32_values(t.data());
         edit(&mut values);
         let data: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
         let view =

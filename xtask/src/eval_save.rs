@@ -77,6 +77,14 @@ fn f32_bytes(values: impl Iterator<Item = f32>) -> Vec<u8> {
     values.flat_map(f32::to_le_bytes).collect()
 }
 
+/// Little-endian float32 bytes (a safetensors tensor's data) as values.
+pub(crate) fn f32_values(bytes: &[u8]) -> Vec<f32> {
+    bytes
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        .collect()
+}
+
 fn points_bytes<'a>(frames: impl Iterator<Item = &'a [Vec3]>) -> Vec<u8> {
     f32_bytes(frames.flat_map(|f| f.iter().flat_map(|p| p.to_array())))
 }
@@ -182,13 +190,6 @@ mod tests {
     use crate::cmd_fit::{FIXTURE_ROPE, FitArgs};
     use crate::common::ProtocolArg;
 
-    fn f32s(t: &safetensors::tensor::TensorView<'_>) -> Vec<f32> {
-        t.data()
-            .chunks_exact(4)
-            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-            .collect()
-    }
-
     /// The saved files hold what the report scored: the mean distance between the saved
     /// predicted and recorded points, over the visible ones, is each episode's reported MDE.
     #[test]
@@ -234,7 +235,10 @@ mod tests {
             assert_eq!(vis.shape(), &pred.shape()[..2]);
             let grippers = st.tensor("grippers").unwrap();
             assert_eq!(grippers.shape()[0], steps + 1);
-            let (p, r) = (f32s(&pred), f32s(&rec));
+            let (p, r) = (
+                super::f32_values(pred.data()),
+                super::f32_values(rec.data()),
+            );
             // MDE per step over the visible points, then the mean over steps (eval's rule).
             let n = pred.shape()[1];
             let mut per_step = Vec::new();
@@ -267,16 +271,7 @@ mod tests {
         // Every rollout diverging (gravity a million times too strong, upward): the command
         // fails, and the index still names the episodes.
         let strong = root.join("strong");
-        std::fs::create_dir_all(&strong).unwrap();
-        for entry in std::fs::read_dir(FIXTURE_ROPE).unwrap() {
-            let path = entry.unwrap().path();
-            std::fs::copy(&path, strong.join(path.file_name().unwrap())).unwrap();
-        }
-        let meta = strong.join("dataset.json");
-        let mut json: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(&meta).unwrap()).unwrap();
-        json["gravity"] = serde_json::json!([0.0, 0.0, 1e6]);
-        std::fs::write(&meta, json.to_string()).unwrap();
+        crate::cmd_fit::diverging_rope_fixture(&strong);
         let dead = root.join("dead");
         let Err(err) = run(&EvalArgs {
             data: strong,

@@ -152,14 +152,10 @@ fn first_non_finite(points: &[Vec3], keep: impl Fn(usize) -> bool) -> Option<usi
 /// dict of Python and numpy numbers). Its other entries are PhysTwin's own model's and are not
 /// read: pgrd's backbone fits its own.
 pub fn read_controller_rule(path: &Path) -> Result<ControllerSprings> {
-    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
-    let data = pickle::parse(&bytes).map_err(|m| Error::invalid(path, m))?;
-    if !matches!(data, Value::Dict(_)) {
-        return Err(Error::invalid(
-            path,
-            "expected a pickled dict of parameters (PhysTwin's optimal_params.pkl)",
-        ));
-    }
+    let data = read_dict(
+        path,
+        "expected a pickled dict of parameters (PhysTwin's optimal_params.pkl)",
+    )?;
     let number = |key: &str| -> Result<f64> {
         let value = data.get(key).ok_or_else(|| {
             Error::invalid(
@@ -194,16 +190,20 @@ pub fn read_controller_rule(path: &Path) -> Result<ControllerSprings> {
     })
 }
 
-/// Reads a PhysTwin `final_data.pkl` (see the module docs).
-pub fn read_capture(path: &Path) -> Result<Capture> {
+/// The pickled dict at `path`; `not_a_dict` is the error's message when it holds something
+/// else.
+fn read_dict(path: &Path, not_a_dict: &str) -> Result<Value> {
     let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
     let data = pickle::parse(&bytes).map_err(|m| Error::invalid(path, m))?;
     if !matches!(data, Value::Dict(_)) {
-        return Err(Error::invalid(
-            path,
-            "expected a pickled dict of numpy arrays",
-        ));
+        return Err(Error::invalid(path, not_a_dict));
     }
+    Ok(data)
+}
+
+/// Reads a PhysTwin `final_data.pkl` (see the module docs).
+pub fn read_capture(path: &Path) -> Result<Capture> {
+    let data = read_dict(path, "expected a pickled dict of numpy arrays")?;
     let points = shaped(&data, "object_points", &[None, None, Some(3)], path)?;
     let (frames, n) = (points.shape[0], points.shape[1]);
     if frames < 2 || n == 0 {
