@@ -496,7 +496,7 @@ pub fn parse_minutes(text: &str) -> Result<f64, String> {
 /// draws) is not a terminal, so a job writing to a log would otherwise say nothing until it
 /// ends. At most one line per [`PlainProgress::EVERY_S`], so short runs stay quiet.
 pub struct PlainProgress {
-    last: Option<std::time::Instant>,
+    last: std::time::Instant,
 }
 
 impl PlainProgress {
@@ -507,18 +507,15 @@ impl PlainProgress {
     /// otherwise.
     pub fn new(quiet: bool) -> Option<Self> {
         (!quiet && !std::io::IsTerminal::is_terminal(&std::io::stderr())).then(|| PlainProgress {
-            last: Some(std::time::Instant::now()),
+            last: std::time::Instant::now(),
         })
     }
 
     /// Whether a line is due now (and, if so, counts it as printed).
     pub fn due(&mut self) -> bool {
-        let now = std::time::Instant::now();
-        let due = self
-            .last
-            .is_none_or(|t| now.duration_since(t).as_secs_f64() >= Self::EVERY_S);
+        let due = self.last.elapsed().as_secs_f64() >= Self::EVERY_S;
         if due {
-            self.last = Some(now);
+            self.last = std::time::Instant::now();
         }
         due
     }
