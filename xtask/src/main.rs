@@ -93,7 +93,9 @@ enum Command {
 }
 
 fn main() -> anyhow::Result<()> {
-    match Cli::parse().command {
+    let command = Cli::parse().command;
+    set_thread_count(&command);
+    match command {
         Command::Demo(args) => cmd_demo::run(&args),
         Command::Gen(args) => cmd_gen::run(&args),
         Command::Diagnose(args) if args.estimate => cmd_diagnose::estimate(&args),
@@ -115,5 +117,30 @@ fn main() -> anyhow::Result<()> {
         Command::Render(args) => cmd_render::run(&args),
         Command::Train(args) => cmd_train::run(&args),
         Command::Ensemble(args) => cmd_ensemble::run(&args),
+    }
+}
+
+/// Sets `RAYON_NUM_THREADS`, when the user has not, to the threads the command runs with
+/// (`train`'s `--threads`, every core otherwise: rayon's own default).
+///
+/// candle's CPU matmul asks for its thread count on every call: from `RAYON_NUM_THREADS` when
+/// set, otherwise by opening and parsing `/proc/cpuinfo` (`num_cpus::get_physical`). Training
+/// multiplies matrices thousands of times a step, and those reads took half of its wall time
+/// on a 2-core host, most of it in the kernel (`docs/BENCHMARKS.md`, "Training: candle's
+/// thread count"). With the variable set the question is an environment lookup. The numbers
+/// do not change: candle splits a product over its output, not its sums.
+fn set_thread_count(command: &Command) {
+    if std::env::var_os("RAYON_NUM_THREADS").is_some() {
+        return;
+    }
+    let threads = match command {
+        Command::Train(args) => args.threads.max(1),
+        _ => std::thread::available_parallelism().map_or(1, std::num::NonZeroUsize::get),
+    };
+    // SAFETY: `main` calls this before anything spawns a thread, so no other thread can be
+    // reading or writing the environment (the one condition `set_var` has).
+    #[allow(unsafe_code)]
+    unsafe {
+        std::env::set_var("RAYON_NUM_THREADS", threads.to_string());
     }
 }
