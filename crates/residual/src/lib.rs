@@ -49,6 +49,7 @@ mod loss;
 mod model;
 mod nn;
 mod rollout;
+mod row_ops;
 mod serialize;
 mod train;
 

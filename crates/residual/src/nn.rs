@@ -1,7 +1,7 @@
 //! Small layers built only from ops that have a backward pass in candle 0.11 (the fused
 //! LayerNorm and `softmax_last_dim` silently drop gradients; see `docs/residual.md`).
 
-use candle_core::{D, Module, Tensor};
+use candle_core::{D, Tensor};
 use candle_nn::{Init, Linear, VarBuilder};
 
 use crate::Result;
@@ -47,12 +47,13 @@ impl Norm {
         if pass == Pass::Infer {
             return crate::kernels::layer_norm(x, &self.gamma, &self.beta, NORM_EPS);
         }
-        Ok(candle_nn::ops::layer_norm_slow(
-            x,
-            &self.gamma,
-            &self.beta,
-            NORM_EPS,
-        )?)
+        // candle's `layer_norm_slow`, step for step, with the gain and shift applied by
+        // `row_ops` (the same values; their gradients summed without a division per element).
+        let hidden = x.dim(D::Minus1)? as f64;
+        let centred = x.broadcast_sub(&(x.sum_keepdim(D::Minus1)? / hidden)?)?;
+        let var = (centred.sqr()?.sum_keepdim(D::Minus1)? / hidden)?;
+        let normed = centred.broadcast_div(&(var + f64::from(NORM_EPS))?.sqrt()?)?;
+        crate::row_ops::add_row(&crate::row_ops::mul_row(&normed, &self.gamma)?, &self.beta)
     }
 }
 
@@ -75,16 +76,27 @@ pub(crate) fn linear(i: usize, o: usize, vb: VarBuilder<'_>) -> Result<Linear> {
     Ok(candle_nn::linear(i, o, vb)?)
 }
 
+/// `x W^T + b` for rows `x` of shape `(n, in)`: candle's `Linear::forward` on rows, with the
+/// bias added by `row_ops` (the same values; its gradient summed without a division per
+/// element).
+fn forward_rows(l: &Linear, x: &Tensor) -> Result<Tensor> {
+    let y = x.matmul(&l.weight().t()?)?;
+    match l.bias() {
+        Some(b) => crate::row_ops::add_row(&y, b),
+        None => Ok(y),
+    }
+}
+
 /// Applies a linear layer to a tensor of any rank ≥ 2 (flattening the leading dims, because a
 /// single large matmul is far faster on CPU than candle's per-batch gemm calls).
 pub(crate) fn apply(l: &Linear, x: &Tensor) -> Result<Tensor> {
     let dims = x.dims();
     if dims.len() == 2 {
-        return Ok(l.forward(x)?);
+        return forward_rows(l, x);
     }
     let last = dims[dims.len() - 1];
     let flat = x.reshape(((), last))?;
-    let y = l.forward(&flat)?;
+    let y = forward_rows(l, &flat)?;
     let mut out = dims.to_vec();
     let n = out.len();
     out[n - 1] = y.dim(1)?;
