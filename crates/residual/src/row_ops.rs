@@ -49,17 +49,29 @@ enum RowOp {
 }
 
 /// The elements of a contiguous CPU f32 storage ([`fast_path`] sends only those here).
-fn logical(s: &CpuStorage, l: &Layout) -> candle_core::Result<Vec<f32>> {
+fn slice<'a>(s: &'a CpuStorage, l: &Layout) -> candle_core::Result<&'a [f32]> {
     let data = s.as_slice::<f32>()?;
     match l.contiguous_offsets() {
-        Some((a, b)) => Ok(data[a..b].to_vec()),
+        Some((a, b)) => Ok(&data[a..b]),
         None => candle_core::bail!("row ops take contiguous tensors only"),
     }
 }
 
-/// A tensor's elements in logical order (a copy; backward passes read detached gradients).
-fn values(t: &Tensor) -> candle_core::Result<Vec<f32>> {
-    t.flatten_all()?.to_vec1::<f32>()
+/// Calls `f` with a tensor's elements in logical order, borrowed where the tensor is a
+/// contiguous CPU f32 one (as gradients are), copied otherwise.
+fn with_values<R>(
+    t: &Tensor,
+    f: impl FnOnce(&[f32]) -> candle_core::Result<R>,
+) -> candle_core::Result<R> {
+    {
+        let (storage, layout) = t.storage_and_layout();
+        if let (candle_core::Storage::Cpu(cpu @ CpuStorage::F32(_)), Some(_)) =
+            (&*storage, layout.contiguous_offsets())
+        {
+            return f(slice(cpu, layout)?);
+        }
+    }
+    f(&t.flatten_all()?.to_vec1::<f32>()?)
 }
 
 impl CustomOp2 for RowOp {
@@ -77,18 +89,19 @@ impl CustomOp2 for RowOp {
         s2: &CpuStorage,
         l2: &Layout,
     ) -> candle_core::Result<(CpuStorage, Shape)> {
-        let mut x = logical(s1, l1)?;
-        let v = logical(s2, l2)?;
+        let x = slice(s1, l1)?;
+        let v = slice(s2, l2)?;
         if v.is_empty() {
-            return Ok((CpuStorage::F32(x), l1.shape().clone()));
+            return Ok((CpuStorage::F32(x.to_vec()), l1.shape().clone()));
         }
-        for row in x.chunks_exact_mut(v.len()) {
+        let mut out = x.to_vec();
+        for row in out.chunks_exact_mut(v.len()) {
             match self {
-                RowOp::Add => row.iter_mut().zip(&v).for_each(|(a, b)| *a += b),
-                RowOp::Mul => row.iter_mut().zip(&v).for_each(|(a, b)| *a *= b),
+                RowOp::Add => row.iter_mut().zip(v).for_each(|(a, b)| *a += b),
+                RowOp::Mul => row.iter_mut().zip(v).for_each(|(a, b)| *a *= b),
             }
         }
-        Ok((CpuStorage::F32(x), l1.shape().clone()))
+        Ok((CpuStorage::F32(out), l1.shape().clone()))
     }
 
     fn bwd(
@@ -99,35 +112,41 @@ impl CustomOp2 for RowOp {
         grad: &Tensor,
     ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>)> {
         let c = v.dim(0)?;
-        let g = values(grad)?;
         let mut sums = vec![0f32; c];
         let dx = match self {
             RowOp::Add => {
-                if c > 0 {
-                    for row in g.chunks_exact(c) {
-                        sums.iter_mut().zip(row).for_each(|(s, g)| *s += g);
+                with_values(grad, |g| {
+                    if c > 0 {
+                        for row in g.chunks_exact(c) {
+                            sums.iter_mut().zip(row).for_each(|(s, g)| *s += g);
+                        }
                     }
-                }
+                    Ok(())
+                })?;
                 grad.clone()
             }
             RowOp::Mul => {
-                let xs = values(x)?;
-                let vs = values(v)?;
-                let mut dx = g.clone();
-                if c > 0 {
-                    for ((drow, grow), xrow) in dx
-                        .chunks_exact_mut(c)
-                        .zip(g.chunks_exact(c))
-                        .zip(xs.chunks_exact(c))
-                    {
-                        drow.iter_mut().zip(&vs).for_each(|(d, v)| *d *= v);
-                        // The product is rounded to f32 before it is added, as candle rounds
-                        // the materialised `grad * x` before its sum.
-                        sums.iter_mut()
-                            .zip(grow.iter().zip(xrow))
-                            .for_each(|(s, (g, x))| *s += g * x);
-                    }
-                }
+                let vs = v.to_vec1::<f32>()?;
+                let dx = with_values(grad, |g| {
+                    with_values(x, |xs| {
+                        let mut dx = g.to_vec();
+                        if c > 0 {
+                            for ((drow, grow), xrow) in dx
+                                .chunks_exact_mut(c)
+                                .zip(g.chunks_exact(c))
+                                .zip(xs.chunks_exact(c))
+                            {
+                                drow.iter_mut().zip(&vs).for_each(|(d, v)| *d *= v);
+                                // The product is rounded to f32 before it is added, as candle
+                                // rounds the materialised `grad * x` before its sum.
+                                sums.iter_mut()
+                                    .zip(grow.iter().zip(xrow))
+                                    .for_each(|(s, (g, x))| *s += g * x);
+                            }
+                        }
+                        Ok(dx)
+                    })
+                })?;
                 Tensor::from_vec(dx, grad.shape(), grad.device())?
             }
         };
