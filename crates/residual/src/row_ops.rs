@@ -12,6 +12,7 @@
 use candle_core::{CpuStorage, CustomOp2, DType, Layout, Shape, Tensor};
 
 use crate::Result;
+use crate::kernels::f32_slice;
 
 /// `x + b`, `b` of shape `[c]` added to every row of `x` (any rank, last dimension `c`).
 pub(crate) fn add_row(x: &Tensor, b: &Tensor) -> Result<Tensor> {
@@ -48,15 +49,6 @@ enum RowOp {
     Mul,
 }
 
-/// The elements of a contiguous CPU f32 storage ([`fast_path`] sends only those here).
-fn slice<'a>(s: &'a CpuStorage, l: &Layout) -> candle_core::Result<&'a [f32]> {
-    let data = s.as_slice::<f32>()?;
-    match l.contiguous_offsets() {
-        Some((a, b)) => Ok(&data[a..b]),
-        None => candle_core::bail!("row ops take contiguous tensors only"),
-    }
-}
-
 /// Calls `f` with a tensor's elements in logical order, borrowed where the tensor is a
 /// contiguous CPU f32 one (as gradients are), copied otherwise.
 fn with_values<R>(
@@ -65,10 +57,10 @@ fn with_values<R>(
 ) -> candle_core::Result<R> {
     {
         let (storage, layout) = t.storage_and_layout();
-        if let (candle_core::Storage::Cpu(cpu @ CpuStorage::F32(_)), Some(_)) =
-            (&*storage, layout.contiguous_offsets())
+        if let candle_core::Storage::Cpu(cpu) = &*storage
+            && let Ok(values) = f32_slice(cpu, layout, "gradient")
         {
-            return f(slice(cpu, layout)?);
+            return f(values);
         }
     }
     f(&t.flatten_all()?.to_vec1::<f32>()?)
@@ -89,8 +81,8 @@ impl CustomOp2 for RowOp {
         s2: &CpuStorage,
         l2: &Layout,
     ) -> candle_core::Result<(CpuStorage, Shape)> {
-        let x = slice(s1, l1)?;
-        let v = slice(s2, l2)?;
+        let x = f32_slice(s1, l1, "row op input")?;
+        let v = f32_slice(s2, l2, "row op vector")?;
         if v.is_empty() {
             return Ok((CpuStorage::F32(x.to_vec()), l1.shape().clone()));
         }
