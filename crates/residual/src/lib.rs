@@ -18,7 +18,7 @@
 //! costs and deviations from the paper: `docs/residual.md`.
 //!
 //! Set `RAYON_NUM_THREADS` in a program that trains: without it candle opens and parses
-//! `/proc/cpuinfo` on every matrix product to count the cores, which took half of a training
+//! `/proc/cpuinfo` on every matrix product to count the cores, which took about 40 % of a training
 //! step's time on a 2-core Linux host (`cargo xtask` sets it; `docs/BENCHMARKS.md`, "Training:
 //! candle's thread count").
 //!
