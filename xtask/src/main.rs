@@ -125,8 +125,8 @@ fn main() -> anyhow::Result<()> {
 ///
 /// candle's CPU matmul asks for its thread count on every call: from `RAYON_NUM_THREADS` when
 /// set, otherwise by opening and parsing `/proc/cpuinfo` (`num_cpus::get_physical`). Training
-/// multiplies matrices thousands of times a step, and those reads took about 40 % of its wall time
-/// on a 2-core host, most of it in the kernel (`docs/BENCHMARKS.md`, "Training: candle's
+/// multiplies matrices thousands of times a step, and those reads took about 40 % of its wall
+/// time on a 2-core host, most of it in the kernel (`docs/BENCHMARKS.md`, "Training: candle's
 /// thread count"). With the variable set the question is an environment lookup. The trained
 /// weights came out the same bits with and without it (measured there).
 fn set_thread_count(command: &Command) {

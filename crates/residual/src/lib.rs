@@ -18,9 +18,9 @@
 //! costs and deviations from the paper: `docs/residual.md`.
 //!
 //! Set `RAYON_NUM_THREADS` in a program that trains: without it candle opens and parses
-//! `/proc/cpuinfo` on every matrix product to count the cores, which took about 40 % of a training
-//! step's time on a 2-core Linux host (`cargo xtask` sets it; `docs/BENCHMARKS.md`, "Training:
-//! candle's thread count").
+//! `/proc/cpuinfo` on every matrix product to count the cores, which took about 40 % of a
+//! training step's time on a 2-core Linux host (`cargo xtask` sets it; `docs/BENCHMARKS.md`,
+//! "Training: candle's thread count").
 //!
 //! ```no_run
 //! # fn main() -> Result<(), residual::ResidualError> {
