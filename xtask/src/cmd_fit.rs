@@ -292,6 +292,11 @@ pub fn run(args: &FitArgs) -> anyhow::Result<BackboneFile> {
         controller_starts: controller_starts.clone(),
     };
     write_json(&backbone_path(&args.run), &file)?;
+    crate::plots::fit_svg(
+        &args.run.join("fit.svg"),
+        &data.meta.object,
+        &file.fit.history,
+    )?;
     println!(
         "fitted {} on {} train episodes in {:.1} s: stiffness {:.0} N/m, damping {:.1} N·s/m, threshold {:.4} m, max springs {}, friction {:.3}; loss {:.3e} m² -> {}",
         data.meta.object,
@@ -393,6 +398,9 @@ mod tests {
         let text = std::fs::read_to_string(&path).unwrap();
         assert!(text.contains(r#""substep": "spectral""#), "{text}");
         assert_eq!(read_backbone(&dir).unwrap().substep, SubstepArg::Spectral);
+        // Its search, drawn beside it.
+        let svg = std::fs::read_to_string(dir.join("fit.svg")).unwrap();
+        assert!(svg.contains("fit: rope, CMA-ES"), "{svg}");
         // A run written before the field existed was fitted with the default rule.
         let mut json: serde_json::Value = serde_json::from_str(&text).unwrap();
         json.as_object_mut().unwrap().remove("substep");

@@ -806,6 +806,22 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
                 selection: selection.clone(),
                 init_from: init_from.clone(),
             },
+        )?;
+        let checks = selection.as_ref().map(|s| crate::plots::Checks {
+            steps: &s.steps,
+            mde_cm: &s.mde_cm,
+            backbone_mde_cm: s.backbone_mde_cm,
+            best_step: s.best_step,
+        });
+        crate::plots::train_svg(
+            &args.run.join("train.svg"),
+            &crate::plots::TrainCurves {
+                title: format!("{} ({})", data.meta.object, trainer.net.config().variant()),
+                loss,
+                backbone_loss: base_loss,
+                unit,
+                checks,
+            },
         )
     };
     while trainer.step < args.iterations {
@@ -1192,6 +1208,12 @@ mod tests {
         assert_eq!(report["selection"]["episodes"], serde_json::json!([4]));
         // All three training episodes were trained on: none held out.
         assert_eq!(report["episodes"], 3, "{}", report["episodes"]);
+        // The picture beside it draws the same selection: its kept step and the backbone.
+        let svg = std::fs::read_to_string(run_dir.join("train.svg")).unwrap();
+        let kept = report["selection"]["best_step"].as_u64().unwrap();
+        assert!(svg.contains(&format!("kept: step {kept},")), "{svg}");
+        let backbone = report["selection"]["backbone_mde_cm"].as_f64().unwrap();
+        assert!(svg.contains(&format!("backbone alone, {backbone:.3} cm")));
         // The fixture itself has no test split: its val is what a user reports, so no choice.
         let err = train(fixture.root.as_path(), &["--select-on-val"])
             .unwrap_err()

@@ -182,7 +182,7 @@ pub fn run(p: &TourPaths, iterations: usize, backbone_mde_cm: f64) -> anyhow::Re
     }
     println!(
         "\nthe tour wrote under {}: run/ (backbone.json, residual.safetensors, train.json, \
-         eval_pgrd_val.json), predictions/ (each val episode's predicted and recorded \
+         train.svg (the training curves), eval_pgrd_val.json), predictions/ (each val episode's predicted and recorded \
          trajectories, safetensors), render/ (frames and compare.gif), report/report.html (open \
          it in a browser), plan/ (rope-lift.json, .svg and a GIF per model) ({:.1} s)",
         p.out.display(),

@@ -28,6 +28,7 @@ mod common;
 mod demo_tour;
 mod eval_horizon;
 mod eval_save;
+mod plots;
 mod report;
 mod staged;
 mod train_choice;

@@ -307,6 +307,10 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
     for file in ["residual.safetensors", "residual.json"] {
         copy_atomic(&chosen.run.join(file), &args.run.join(file))?;
     }
+    // A candidate trained before `train` drew its curves has no picture to copy.
+    if chosen.run.join("train.svg").exists() {
+        copy_atomic(&chosen.run.join("train.svg"), &args.run.join("train.svg"))?;
+    }
     let mut report: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(chosen.run.join("train.json"))?)?;
     report["recipe_choice"] = serde_json::json!({

@@ -1,0 +1,491 @@
+//! A run's own progress as pictures: how a fit's CMA-ES search converged (`fit.svg`) and how a
+//! network trained (`train.svg`). Drawn from the numbers `backbone.json` and `train.json`
+//! record, written beside them (atomically) whenever those are, so a long run can be watched
+//! in a browser and a finished one read at a glance.
+
+use std::path::Path;
+
+use anyhow::Context;
+use plotters::coord::Shift;
+use plotters::coord::types::RangedCoordf64;
+use plotters::prelude::*;
+
+const BLUE: RGBColor = RGBColor(31, 119, 180);
+const RED: RGBColor = RGBColor(214, 39, 40);
+const GREEN: RGBColor = RGBColor(44, 160, 44);
+const GREY: RGBColor = RGBColor(127, 127, 127);
+
+/// The mean of the finite values among the last `window` entries up to each index (`NaN` where
+/// there is none). Training losses are one batch each, too noisy to read step by step; the
+/// backbone's yardstick is scored only every few steps, `NaN` between.
+pub fn trailing_mean(values: &[f64], window: usize) -> Vec<f64> {
+    let window = window.max(1);
+    let (mut sum, mut count) = (0.0, 0usize);
+    let mut out = Vec::with_capacity(values.len());
+    for (i, &v) in values.iter().enumerate() {
+        if v.is_finite() {
+            sum += v;
+            count += 1;
+        }
+        if i >= window {
+            let old = values[i - window];
+            if old.is_finite() {
+                sum -= old;
+                count -= 1;
+            }
+        }
+        // Summing a running window drifts by rounding; recomputing when the window empties
+        // keeps a long run's curve from carrying that drift.
+        if count == 0 {
+            sum = 0.0;
+        }
+        out.push(if count > 0 {
+            sum / count as f64
+        } else {
+            f64::NAN
+        });
+    }
+    out
+}
+
+/// Ends of a logarithmic axis holding every positive finite value, at whole decades: the
+/// axis labels powers of ten and the steps between, so a range inside one decade would show
+/// one label or none.
+fn log_range(values: impl Iterator<Item = f64>) -> Option<(f64, f64)> {
+    let (lo, hi) = values
+        .filter(|v| v.is_finite() && *v > 0.0)
+        .fold((f64::INFINITY, 0.0f64), |(lo, hi), v| {
+            (lo.min(v), hi.max(v))
+        });
+    (hi > 0.0).then(|| {
+        let low = lo.log10().floor();
+        let high = hi.log10().ceil().max(low + 1.0);
+        // A hair below the decade, so that rounding in the axis's own logarithm keeps its label.
+        (10f64.powf(low) * 0.999, 10f64.powf(high))
+    })
+}
+
+/// Upper end of a linear axis from 0 that holds every finite value.
+fn linear_top(values: impl Iterator<Item = f64>) -> f64 {
+    let top = values.filter(|v| v.is_finite()).fold(0.0f64, f64::max);
+    if top > 0.0 { top * 1.1 } else { 1.0 }
+}
+
+fn svg_to(
+    path: &Path,
+    draw: impl FnOnce(&DrawingArea<SVGBackend<'_>, Shift>) -> anyhow::Result<()>,
+) -> anyhow::Result<()> {
+    let mut svg = String::new();
+    {
+        let root = SVGBackend::with_string(&mut svg, (760, 460)).into_drawing_area();
+        root.fill(&WHITE)?;
+        draw(&root)?;
+        root.present()?;
+    }
+    dataset::write_atomic(path, svg.as_bytes())
+        .with_context(|| format!("writing {}", path.display()))
+}
+
+/// `fit.svg`: per CMA-ES generation the best loss so far, the generation's best and its
+/// median candidate, in m² on a logarithmic axis (the values `backbone.json`'s `fit.history`
+/// holds; a candidate that diverged scores the fit's penalty and lifts the median to it).
+pub fn fit_svg(path: &Path, object: &str, history: &[fit::Generation]) -> anyhow::Result<()> {
+    svg_to(path, |root| {
+        let series = [
+            (
+                "best so far",
+                BLUE,
+                history.iter().map(|g| g.best_so_far).collect::<Vec<_>>(),
+            ),
+            (
+                "the generation's best",
+                GREEN,
+                history.iter().map(|g| g.best_loss).collect(),
+            ),
+            (
+                "the generation's median",
+                GREY,
+                history.iter().map(|g| g.median_loss).collect(),
+            ),
+        ];
+        let Some((lo, hi)) = log_range(series.iter().flat_map(|s| s.2.iter().copied())) else {
+            root.draw(&Text::new(
+                "no finite loss recorded",
+                (40, 40),
+                ("sans-serif", 16),
+            ))?;
+            return Ok(());
+        };
+        let last = history.len().max(2) as f64;
+        let mut chart = ChartBuilder::on(root)
+            .caption(format!("fit: {object}, CMA-ES"), ("sans-serif", 18))
+            .margin(12)
+            .x_label_area_size(36)
+            .y_label_area_size(72)
+            .build_cartesian_2d(1.0..last, (lo..hi).log_scale())?;
+        chart
+            .configure_mesh()
+            .x_desc("generation")
+            .y_desc("loss, m²")
+            .x_label_formatter(&|v| format!("{v:.0}"))
+            // Enough for plotters to label 2, 3, ... 9 within each decade, not only its powers.
+            .y_labels(40)
+            .y_label_formatter(&|v| format!("{v:.1e}"))
+            .light_line_style(WHITE.mix(0.0))
+            .draw()?;
+        for (label, color, y) in series {
+            let points = y
+                .into_iter()
+                .enumerate()
+                .filter(|(_, v)| v.is_finite() && *v > 0.0)
+                .map(|(i, v)| (i as f64 + 1.0, v))
+                .collect::<Vec<_>>();
+            chart
+                .draw_series(LineSeries::new(
+                    points.iter().copied(),
+                    color.stroke_width(2),
+                ))?
+                .label(label)
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], color));
+            chart.draw_series(points.iter().map(|&p| Circle::new(p, 3, color.filled())))?;
+        }
+        chart
+            .configure_series_labels()
+            .background_style(WHITE.mix(0.8))
+            .border_style(BLACK)
+            .position(SeriesLabelPosition::UpperRight)
+            .draw()?;
+        Ok(())
+    })
+}
+
+/// The held-out checks of a training run's network selection, for [`train_svg`].
+pub struct Checks<'a> {
+    /// Optimiser steps checked.
+    pub steps: &'a [usize],
+    /// Held-out rollout MDE at those steps, cm (`None`: a rollout diverged).
+    pub mde_cm: &'a [Option<f64>],
+    /// The backbone alone on the same episodes, cm.
+    pub backbone_mde_cm: f64,
+    /// The step whose network the run keeps.
+    pub best_step: usize,
+}
+
+/// What [`train_svg`] draws.
+pub struct TrainCurves<'a> {
+    /// Object and variant, for the title.
+    pub title: String,
+    /// Training loss per optimiser step, in `unit`.
+    pub loss: &'a [f64],
+    /// The backbone alone on the same segments, per step (`NaN` where not scored).
+    pub backbone_loss: &'a [f64],
+    /// `cm²` or `cm`.
+    pub unit: &'a str,
+    /// The selection's checks, when the run holds episodes out.
+    pub checks: Option<Checks<'a>>,
+}
+
+/// Steps averaged for the training-loss curve: about a twentieth of the run, 1 to 100.
+pub fn smoothing_window(steps: usize) -> usize {
+    (steps / 20).clamp(1, 100)
+}
+
+/// Over the last `window` steps up to each index, the network's summed loss over the
+/// backbone's, on the steps where both were scored (`NaN` where none was): the same segments
+/// in numerator and denominator, so what changes from batch to batch cancels.
+pub fn trailing_ratio(loss: &[f64], backbone: &[f64], window: usize) -> Vec<f64> {
+    let both = |j: usize| {
+        let (l, b) = (loss[j], backbone.get(j).copied().unwrap_or(f64::NAN));
+        (l.is_finite() && b.is_finite() && b > 0.0).then_some((l, b))
+    };
+    (0..loss.len())
+        .map(|i| {
+            let (l, b) = (i + 1 - window.max(1).min(i + 1)..=i)
+                .filter_map(both)
+                .fold((0.0, 0.0), |(sl, sb), (l, b)| (sl + l, sb + b));
+            if b > 0.0 { l / b } else { f64::NAN }
+        })
+        .collect()
+}
+
+type Area<'a> = DrawingArea<SVGBackend<'a>, Shift>;
+
+/// One panel of [`train_svg`]: `curves` (colour, points) over the optimiser steps, titled by
+/// `caption`, the y axis from `y.0` to `y.1`.
+fn panel<'a, 'b>(
+    area: &'a Area<'b>,
+    caption: &str,
+    y_desc: &str,
+    x_right: f64,
+    y: (f64, f64),
+    curves: &[(RGBColor, Vec<(f64, f64)>)],
+) -> anyhow::Result<ChartContext<'a, SVGBackend<'b>, Cartesian2d<RangedCoordf64, RangedCoordf64>>> {
+    let mut chart = ChartBuilder::on(area)
+        .caption(caption, ("sans-serif", 15))
+        .margin(8)
+        .x_label_area_size(28)
+        .y_label_area_size(60)
+        .build_cartesian_2d(0.0..x_right, y.0..y.1)?;
+    chart
+        .configure_mesh()
+        .x_desc("optimiser step")
+        .y_desc(y_desc)
+        .x_label_formatter(&|v| format!("{v:.0}"))
+        .y_label_formatter(&|v| format!("{v:.2}"))
+        .light_line_style(WHITE.mix(0.0))
+        .draw()?;
+    for (color, points) in curves {
+        chart.draw_series(LineSeries::new(
+            points.iter().copied(),
+            color.stroke_width(2),
+        ))?;
+    }
+    Ok(chart)
+}
+
+/// The finite values of `y`, as points at steps 1, 2, ...
+fn by_step(y: &[f64]) -> Vec<(f64, f64)> {
+    y.iter()
+        .enumerate()
+        .filter(|(_, v)| v.is_finite())
+        .map(|(i, v)| (i as f64 + 1.0, *v))
+        .collect()
+}
+
+/// An axis spanning `values` with some room: held-out errors and loss ratios differ by a few
+/// per cent to tens of per cent, which an axis from 0 would flatten.
+fn span(values: impl Iterator<Item = f64>) -> (f64, f64) {
+    let (lo, hi) = values
+        .filter(|v| v.is_finite())
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), v| {
+            (lo.min(v), hi.max(v))
+        });
+    if !lo.is_finite() {
+        return (0.0, 1.0);
+    }
+    let pad = ((hi - lo) * 0.15).max(hi.abs() * 0.02).max(1e-3);
+    ((lo - pad).max(0.0), hi + pad)
+}
+
+/// `train.svg`, up to three panels over the optimiser steps: the training loss (a trailing
+/// mean, [`smoothing_window`]); the network's loss over the backbone's on the same segments
+/// ([`trailing_ratio`], below 1 where the network improves on the backbone; when the run
+/// scored the backbone); and with a selection the held-out rollout MDE at each check against
+/// the backbone's, the kept step circled.
+pub fn train_svg(path: &Path, c: &TrainCurves<'_>) -> anyhow::Result<()> {
+    let w = smoothing_window(c.loss.len());
+    let loss = trailing_mean(c.loss, w);
+    // The yardstick is scored every few steps: a window holding several of them.
+    let ratio = trailing_ratio(c.loss, c.backbone_loss, w.max(50));
+    let has_ratio = ratio.iter().any(|r| r.is_finite());
+    let panels = 1 + usize::from(has_ratio) + usize::from(c.checks.is_some());
+    let right = (c.loss.len().max(1) as f64).max(
+        c.checks
+            .as_ref()
+            .and_then(|k| k.steps.iter().max())
+            .copied()
+            .unwrap_or(0) as f64,
+    );
+    let mut svg = String::new();
+    {
+        let root =
+            SVGBackend::with_string(&mut svg, (760, 40 + 210 * panels as u32)).into_drawing_area();
+        root.fill(&WHITE)?;
+        let root = root.titled(&format!("train: {}", c.title), ("sans-serif", 18))?;
+        let areas = root.split_evenly((panels, 1));
+        let mut areas = areas.iter();
+        let Some(area) = areas.next() else {
+            anyhow::bail!("no panel to draw in");
+        };
+        panel(
+            area,
+            &format!("training rollout loss (mean of the last {w} steps)"),
+            c.unit,
+            right,
+            (0.0, linear_top(loss.iter().copied())),
+            &[(BLUE, by_step(&loss))],
+        )?;
+        if has_ratio && let Some(area) = areas.next() {
+            let (lo, hi) = span(ratio.iter().copied().chain([1.0]));
+            panel(
+                area,
+                "network / backbone loss, same segments (grey: 1, the backbone)",
+                "ratio",
+                right,
+                (lo, hi),
+                &[
+                    (GREY, vec![(0.0, 1.0), (right, 1.0)]),
+                    (BLUE, by_step(&ratio)),
+                ],
+            )?;
+        }
+        if let (Some(k), Some(area)) = (&c.checks, areas.next()) {
+            let checked = k
+                .steps
+                .iter()
+                .zip(k.mde_cm)
+                .filter_map(|(&s, m)| m.filter(|v| v.is_finite()).map(|v| (s as f64, v)))
+                .collect::<Vec<_>>();
+            let kept = checked
+                .iter()
+                .find(|(s, _)| *s == k.best_step as f64)
+                .copied();
+            let caption = format!(
+                "held-out rollout MDE at each check (grey: backbone alone, {:.3} cm){}",
+                k.backbone_mde_cm,
+                kept.map_or(String::new(), |(_, v)| format!(
+                    "; kept: step {}, {v:.3} cm",
+                    k.best_step
+                ))
+            );
+            let y = span(checked.iter().map(|p| p.1).chain([k.backbone_mde_cm]));
+            let line = vec![(0.0, k.backbone_mde_cm), (right, k.backbone_mde_cm)];
+            let mut chart = panel(
+                area,
+                &caption,
+                "cm",
+                right,
+                y,
+                &[(GREY, line), (RED, checked.clone())],
+            )?;
+            chart.draw_series(checked.iter().map(|&p| Circle::new(p, 3, RED.filled())))?;
+            if let Some(p) = kept {
+                chart.draw_series(std::iter::once(Circle::new(p, 7, GREEN.stroke_width(3))))?;
+            }
+        }
+        root.present()?;
+    }
+    dataset::write_atomic(path, svg.as_bytes())
+        .with_context(|| format!("writing {}", path.display()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_trailing_mean_skips_what_was_not_scored() {
+        let nan = f64::NAN;
+        let m = trailing_mean(&[1.0, nan, 3.0, nan, nan, nan, 8.0], 3);
+        assert_eq!(m[0], 1.0);
+        assert_eq!(m[1], 1.0);
+        assert_eq!(m[2], 2.0);
+        assert_eq!(m[3], 3.0); // window [nan, 3, nan]
+        assert_eq!(m[4], 3.0);
+        assert!(m[5].is_nan()); // window [nan, nan, nan]
+        assert_eq!(m[6], 8.0);
+        assert_eq!(trailing_mean(&[2.0, 4.0, 6.0], 1), vec![2.0, 4.0, 6.0]);
+    }
+
+    #[test]
+    fn the_ratio_compares_the_same_steps_only() {
+        let nan = f64::NAN;
+        let loss = [1.0, 2.0, 3.0, 4.0];
+        let base = [2.0, nan, 6.0, nan];
+        let r = trailing_ratio(&loss, &base, 2);
+        assert_eq!(r[0], 0.5);
+        assert_eq!(r[1], 0.5); // steps 0-1: only step 0 has both
+        assert_eq!(r[2], 0.5); // steps 1-2: 3 / 6
+        assert_eq!(r[3], 0.5);
+        let r = trailing_ratio(&loss, &base, 4);
+        assert_eq!(r[3], 4.0 / 8.0);
+        assert!(
+            trailing_ratio(&loss, &[nan; 4], 3)
+                .iter()
+                .all(|r| r.is_nan())
+        );
+    }
+
+    #[test]
+    fn a_log_axis_spans_whole_decades() {
+        let (lo, hi) = log_range([1.4e-4, 2.3e-3, f64::NAN, -1.0].into_iter()).unwrap();
+        assert!(
+            (lo - 0.999e-4).abs() < 1e-12 && (hi - 1e-2).abs() < 1e-10,
+            "{lo} {hi}"
+        );
+        let (lo, hi) = log_range([1e-3].into_iter()).unwrap();
+        assert!(lo < 1e-3 * 1.0001 && hi > 1e-3, "{lo} {hi}");
+        assert!(log_range([f64::NAN, 0.0].into_iter()).is_none());
+    }
+
+    fn generation(index: usize, best: f64) -> fit::Generation {
+        fit::Generation {
+            index,
+            best_loss: best,
+            median_loss: best * 2.0,
+            best_so_far: best,
+            diverged: 0,
+            wall_s: 0.1,
+        }
+    }
+
+    #[test]
+    fn the_fit_picture_names_its_curves_and_survives_no_finite_loss() {
+        let dir = std::env::temp_dir().join(format!("pgrd-fit-svg-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("fit.svg");
+        let history = (0..5)
+            .map(|i| generation(i, 1e-3 / (i + 1) as f64))
+            .collect::<Vec<_>>();
+        fit_svg(&path, "rope", &history).unwrap();
+        let svg = std::fs::read_to_string(&path).unwrap();
+        assert!(svg.starts_with("<svg"), "{}", &svg[..40.min(svg.len())]);
+        for label in ["best so far", "the generation&apos;s median", "fit: rope"] {
+            assert!(
+                svg.contains(label) || svg.contains(&label.replace("&apos;", "'")),
+                "{label}"
+            );
+        }
+        fit_svg(&path, "rope", &[generation(0, f64::NAN)]).unwrap();
+        assert!(
+            std::fs::read_to_string(&path)
+                .unwrap()
+                .contains("no finite loss")
+        );
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn the_training_picture_marks_the_kept_step() {
+        let dir = std::env::temp_dir().join(format!("pgrd-train-svg-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("train.svg");
+        let loss = (0..200)
+            .map(|i| 10.0 / (1.0 + i as f64 / 50.0))
+            .collect::<Vec<_>>();
+        let base = (0..200)
+            .map(|i| if i % 10 == 0 { 10.0 } else { f64::NAN })
+            .collect::<Vec<_>>();
+        let checks = Checks {
+            steps: &[0, 100, 200],
+            mde_cm: &[Some(2.0), None, Some(1.5)],
+            backbone_mde_cm: 2.0,
+            best_step: 200,
+        };
+        let curves = TrainCurves {
+            title: "rope (full)".into(),
+            loss: &loss,
+            backbone_loss: &base,
+            unit: "cm²",
+            checks: Some(checks),
+        };
+        train_svg(&path, &curves).unwrap();
+        let svg = std::fs::read_to_string(&path).unwrap();
+        assert!(svg.contains("kept: step 200, 1.500 cm"));
+        assert!(svg.contains("backbone alone, 2.000 cm"));
+        assert!(svg.contains("mean of the last 10 steps"));
+        assert!(svg.contains("network / backbone loss"));
+        // Without a selection, one panel, and no check is drawn.
+        let curves = TrainCurves {
+            checks: None,
+            ..curves
+        };
+        train_svg(&path, &curves).unwrap();
+        assert!(
+            !std::fs::read_to_string(&path)
+                .unwrap()
+                .contains("kept: step")
+        );
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}
