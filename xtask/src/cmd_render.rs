@@ -1,7 +1,9 @@
 //! `cargo xtask render`: action-conditioned video prediction. The run's model is rolled out on
 //! one episode; Gaussians carried by the predicted particles and the reference world's own
 //! ground-truth Gaussians (`truth_ep_NNNN.safetensors`) are rendered from the same camera and
-//! compared with J, F and LPIPS (`docs/rendering.md`).
+//! compared with J, F and LPIPS (`docs/rendering.md`). A recording without them (DEFORM, a
+//! PhysTwin import, your own data) is compared with its recorded tracked points instead, both
+//! carrying one Gaussian per tracked point ([`GroundTruth::Recorded`]).
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -130,28 +132,124 @@ pub struct StepScores {
     pub lpips: Option<f64>,
 }
 
-/// Reads episode `index`'s ground-truth Gaussians and checks they cover its frames.
-pub fn load_truth(
-    data: &Dataset,
-    index: usize,
-    episode: &Episode,
-) -> anyhow::Result<TruthGaussians> {
-    let path = TruthGaussians::path(&data.root, index);
-    anyhow::ensure!(
-        path.exists(),
-        "{} is missing: ground-truth frames need a reference-world dataset written with \
-         ground-truth Gaussians (`cargo xtask gen`; GenConfig::gaussian_particles > 0)",
-        path.display()
-    );
-    let truth = TruthGaussians::read(&path)?;
-    anyhow::ensure!(
-        truth.frames() == episode.frames(),
-        "{}: {} frames, but episode {index} has {}",
-        path.display(),
-        truth.frames(),
-        episode.frames()
-    );
-    Ok(truth)
+/// What a prediction is rendered against.
+pub enum GroundTruth {
+    /// The reference world's own Gaussians (`truth_ep_NNNN.safetensors`, one per fine
+    /// particle), written by `cargo xtask gen`.
+    World(TruthGaussians),
+    /// The episode's recorded tracked points, each carrying one Gaussian with the dataset's
+    /// colour (the [`Appearance::Tracked`] construction, moved to every recorded frame): for
+    /// recordings, which have no ground-truth Gaussians. The prediction carries the same
+    /// Gaussians, so the two start from the same image and every difference is motion. Points
+    /// the tracker lost are drawn where the dataset stores them.
+    Recorded {
+        /// Every frame's tracked positions, m.
+        frames: Vec<Vec<Vec3>>,
+        /// Per tracked point (grey without the dataset's colours).
+        colors: Vec<[f32; 3]>,
+    },
+}
+
+impl GroundTruth {
+    /// Episode `index`'s ground truth: the world's Gaussians when the dataset has them, else
+    /// the recorded tracked points.
+    pub fn load(data: &Dataset, index: usize, episode: &Episode) -> anyhow::Result<Self> {
+        let path = TruthGaussians::path(&data.root, index);
+        if !path.exists() {
+            return Ok(Self::Recorded {
+                frames: (0..episode.frames())
+                    .map(|t| episode.frame(t).to_vec())
+                    .collect(),
+                colors: tracked_colors(episode),
+            });
+        }
+        let truth = TruthGaussians::read(&path)?;
+        anyhow::ensure!(
+            truth.frames() == episode.frames(),
+            "{}: {} frames, but episode {index} has {}",
+            path.display(),
+            truth.frames(),
+            episode.frames()
+        );
+        Ok(Self::World(truth))
+    }
+
+    /// Frames held.
+    pub fn frames(&self) -> usize {
+        match self {
+            Self::World(t) => t.frames(),
+            Self::Recorded { frames, .. } => frames.len(),
+        }
+    }
+
+    /// Positions of the Gaussians' centres at frame `t`, m.
+    fn positions(&self, t: usize) -> Vec<Vec3> {
+        match self {
+            Self::World(truth) => truth.frame(t),
+            Self::Recorded { frames, .. } => frames[t].clone(),
+        }
+    }
+
+    /// Gaussians rendered as the ground truth.
+    pub fn gaussian_count(&self) -> usize {
+        match self {
+            Self::World(t) => t.particles(),
+            Self::Recorded { colors, .. } => colors.len(),
+        }
+    }
+
+    /// What `video.json` and `eval --visual` name it.
+    pub fn label(&self) -> &'static str {
+        match self {
+            Self::World(_) => "the reference world's ground-truth Gaussians",
+            Self::Recorded { .. } => "the recorded tracked points, one Gaussian each",
+        }
+    }
+
+    /// The appearance a prediction can be compared with: the world's own Gaussians allow
+    /// either; recorded points only the tracked construction.
+    pub fn appearance(&self, asked: Appearance) -> Appearance {
+        match self {
+            Self::World(_) => asked,
+            Self::Recorded { .. } => Appearance::Tracked,
+        }
+    }
+
+    /// Renders frames `window.start ..= window.start + window.steps`.
+    fn render_window(&self, window: Window, camera: &Camera) -> anyhow::Result<Vec<Image>> {
+        let frames = window.start..=window.start + window.steps;
+        match self {
+            Self::World(truth) => frames
+                .map(|t| Ok(render(&truth_at(truth, t)?, camera, BACKGROUND)?))
+                .collect(),
+            Self::Recorded {
+                frames: recorded,
+                colors,
+            } => {
+                let mut rig = GaussianRig::from_particles(
+                    &recorded[window.start],
+                    colors,
+                    &RigOptions::default(),
+                )?;
+                let mut out = vec![render(rig.gaussians(), camera, BACKGROUND)?];
+                let later = recorded.iter().enumerate().skip(window.start + 1);
+                for (t, frame) in later.take(window.steps) {
+                    let g = rig
+                        .deform(frame)
+                        .with_context(|| format!("moving the recorded Gaussians to frame {t}"))?;
+                    out.push(render(g, camera, BACKGROUND)?);
+                }
+                Ok(out)
+            }
+        }
+    }
+}
+
+/// The dataset's colour of each tracked point, grey without one.
+fn tracked_colors(episode: &Episode) -> Vec<[f32; 3]> {
+    episode
+        .colors()
+        .map_or_else(|| vec![[0.6; 3]; episode.particles()], <[_]>::to_vec)
 }
 
 /// The ground truth's Gaussians at frame `t`: isotropic, one per fine particle.
@@ -173,15 +271,15 @@ fn truth_at(truth: &TruthGaussians, t: usize) -> anyhow::Result<Gaussians> {
 /// ground-truth position in the window, backed off until they fill [`FILL`] of the image;
 /// vertical field of view [`FOV_Y_DEG`]. Returns the camera and its azimuth (degrees).
 pub fn object_camera(
-    truth: &TruthGaussians,
+    truth: &GroundTruth,
     window: Window,
     width: usize,
     height: usize,
 ) -> anyhow::Result<(Camera, f32)> {
     let all: Vec<Vec3> = (window.start..=window.start + window.steps)
-        .flat_map(|t| truth.frame(t))
+        .flat_map(|t| truth.positions(t))
         .collect();
-    let start = truth.frame(window.start);
+    let start = truth.positions(window.start);
     let fov = FOV_Y_DEG.to_radians();
     let view = |az_deg: f32| {
         let (el, az) = (ELEVATION_DEG.to_radians(), az_deg.to_radians());
@@ -216,7 +314,7 @@ pub fn object_camera(
 /// Renders the ground truth and the prediction over `window`: `predicted` holds the tracked
 /// particles' positions after each step (`window.steps` entries of `episode.particles()`).
 pub fn render_video(
-    truth: &TruthGaussians,
+    truth: &GroundTruth,
     episode: &Episode,
     window: Window,
     predicted: &[Vec<Vec3>],
@@ -236,20 +334,14 @@ pub fn render_video(
     let (camera, azimuth_deg) = object_camera(truth, window, opts.width, opts.height)?;
     let start = episode.frame(window.start);
     let options = RigOptions::default();
-    let mut rig = match opts.appearance {
-        Appearance::Fine => GaussianRig::new(truth_at(truth, window.start)?, start, &options)?,
-        Appearance::Tracked => {
-            let colors = episode
-                .colors()
-                .map_or_else(|| vec![[0.6; 3]; start.len()], <[_]>::to_vec);
-            GaussianRig::from_particles(start, &colors, &options)?
+    let mut rig = match (truth, truth.appearance(opts.appearance)) {
+        (GroundTruth::World(world), Appearance::Fine) => {
+            GaussianRig::new(truth_at(world, window.start)?, start, &options)?
         }
+        _ => GaussianRig::from_particles(start, &tracked_colors(episode), &options)?,
     };
     let mut pred = vec![render(rig.gaussians(), &camera, BACKGROUND)?];
-    let mut truth_frames = Vec::with_capacity(window.steps + 1);
-    for t in window.start..=window.start + window.steps {
-        truth_frames.push(render(&truth_at(truth, t)?, &camera, BACKGROUND)?);
-    }
+    let truth_frames = truth.render_window(window, &camera)?;
     for (k, p) in predicted.iter().enumerate() {
         let g = rig
             .deform(p)
@@ -329,9 +421,13 @@ pub fn visual_metrics(
 ) -> anyhow::Result<serde_json::Value> {
     let lpips = Lpips::new()?;
     let mut curves: [Vec<Vec<f64>>; 3] = Default::default();
+    let mut truths = std::collections::BTreeSet::new();
+    let mut used = *opts;
     for (i, scene, pred) in predictions {
         let episode = data.load_episode(*i)?;
-        let truth = load_truth(data, *i, &episode)?;
+        let truth = GroundTruth::load(data, *i, &episode)?;
+        truths.insert(truth.label());
+        used.appearance = truth.appearance(opts.appearance);
         let video = render_video(&truth, &episode, scene.window, pred, opts)
             .with_context(|| format!("rendering episode {i}"))?;
         let scores = score_video(&video, scene.window, Some(&lpips))?;
@@ -345,7 +441,8 @@ pub fn visual_metrics(
         "LPIPS v0.1 AlexNet, RGB in [0, 1] on a uniform background",
     ];
     let mut summary = serde_json::json!({
-        "options": opts,
+        "options": used,
+        "truth": truths.into_iter().collect::<Vec<_>>().join("; "),
         "camera": format!(
             "{ELEVATION_DEG} deg elevation, best of 12 azimuths, {FOV_Y_DEG} deg vertical field \
              of view, ground truth of the window filling {FILL} of the image"
@@ -378,6 +475,8 @@ struct RenderReport {
     steps: usize,
     options: VideoOptions,
     camera: serde_json::Value,
+    /// What the prediction was compared with ([`GroundTruth::label`]).
+    truth: &'static str,
     truth_gaussians: usize,
     mean: serde_json::Value,
     per_step: Vec<StepScores>,
@@ -408,7 +507,15 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
         })?
         .split;
     let episode = data.load_episode(index)?;
-    let truth = load_truth(&data, index, &episode)?;
+    let truth = GroundTruth::load(&data, index, &episode)?;
+    if matches!(truth, GroundTruth::Recorded { .. }) {
+        println!(
+            "note: {} has no ground-truth Gaussians (a recording, not `cargo xtask gen`'s world): \
+             the prediction is compared with {}, as `--appearance tracked`",
+            args.data.display(),
+            truth.label()
+        );
+    }
     let protocol: Protocol = args.protocol.into();
     let window = protocol.window(episode.frames())?;
     let backbone = read_backbone(&args.run)?;
@@ -447,7 +554,7 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
     let opts = VideoOptions {
         width: args.width,
         height: args.height,
-        appearance: args.appearance,
+        appearance: truth.appearance(args.appearance),
     };
     let video = render_video(&truth, &episode, window, &predicted, &opts)?;
     let lpips = if args.no_lpips {
@@ -515,7 +622,8 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
             "world_to_camera_rotation": cam.rotation.to_cols_array(),
             "world_to_camera_translation_m": cam.translation.to_array(),
         }),
-        truth_gaussians: truth.particles(),
+        truth: truth.label(),
+        truth_gaussians: truth.gaussian_count(),
         mean,
         per_step: scores,
         wall_s: t0.elapsed().as_secs_f64(),
@@ -553,7 +661,8 @@ mod tests {
         let data = Dataset::open(&root).unwrap();
         let index = data.split_indices(Split::Val)[0];
         let episode = data.load_episode(index).unwrap();
-        let truth = load_truth(&data, index, &episode).unwrap();
+        let truth = GroundTruth::load(&data, index, &episode).unwrap();
+        assert!(matches!(truth, GroundTruth::World(_)));
         // Five steps of the paper window keep the test quick.
         let window = Window { start: 2, steps: 5 };
         let opts = VideoOptions {
@@ -571,7 +680,7 @@ mod tests {
         assert_eq!(video.pred[0].alpha, video.truth[0].alpha);
         // Every ground-truth position of the window is inside the image.
         for t in window.start..=window.start + window.steps {
-            for p in truth.frame(t) {
+            for p in truth.positions(t) {
                 let (uv, _) = video.camera.project(p).unwrap();
                 assert!(uv.x > 0.0 && uv.y > 0.0 && uv.x < 96.0 && uv.y < 72.0);
             }
@@ -607,5 +716,44 @@ mod tests {
             steps: 40,
         };
         assert!(render_video(&truth, &episode, long, &vec![vec![]; 40], &opts).is_err());
+    }
+
+    /// A recording without ground-truth Gaussians (the numpy writer's chain) is compared with
+    /// its recorded tracked points: a prediction that follows them renders the very same
+    /// images, whatever appearance was asked for, and one frozen at the start does worse.
+    #[test]
+    fn a_recording_is_compared_with_its_tracked_points() {
+        let root =
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../fixtures/numpy_writer/chain");
+        let data = Dataset::open(&root).unwrap();
+        let index = data.split_indices(Split::Val)[0];
+        let episode = data.load_episode(index).unwrap();
+        let truth = GroundTruth::load(&data, index, &episode).unwrap();
+        assert!(matches!(truth, GroundTruth::Recorded { .. }));
+        assert_eq!(truth.frames(), episode.frames());
+        assert_eq!(truth.gaussian_count(), episode.particles());
+        assert_eq!(truth.appearance(Appearance::Fine), Appearance::Tracked);
+        let window = Window {
+            start: 2,
+            steps: 20,
+        };
+        let opts = VideoOptions {
+            width: 96,
+            height: 72,
+            appearance: Appearance::Fine,
+        };
+        let following: Vec<Vec<Vec3>> = (1..=window.steps)
+            .map(|k| episode.frame(window.start + k).to_vec())
+            .collect();
+        let video = render_video(&truth, &episode, window, &following, &opts).unwrap();
+        for (p, t) in video.pred.iter().zip(&video.truth) {
+            assert_eq!(p.rgb, t.rgb);
+            assert_eq!(p.alpha, t.alpha);
+        }
+        let frozen = vec![episode.frame(window.start).to_vec(); window.steps];
+        let still = render_video(&truth, &episode, window, &frozen, &opts).unwrap();
+        let scores = score_video(&still, window, None).unwrap();
+        let worst = scores.iter().map(|s| s.j).fold(1.0, f64::min);
+        assert!(worst < 0.9, "{scores:?}");
     }
 }
