@@ -11,7 +11,7 @@ use scene::Scene;
 
 use crate::common::{
     BackboneFile, PlainProgress, ProtocolArg, SceneSetting, SubstepArg, backbone_path,
-    note_glued_springs, scenes, warn_if_unconnected,
+    note_glued_springs, scenes, warn_if_unconnected, write_spring_graph,
 };
 use crate::report::write_json;
 
@@ -269,7 +269,8 @@ pub fn run(args: &FitArgs) -> anyhow::Result<BackboneFile> {
     let params = BackboneFamily::params(&outcome.best);
     let controller_springs = controller_start.map(|_| ControllerFamily::rule(&outcome.best));
     if let Some(scene) = scenes.first() {
-        warn_if_unconnected(scene, &params, Default::default())?;
+        let bb = warn_if_unconnected(scene, &params, Default::default())?;
+        write_spring_graph(&args.run.join("springs.ply"), scene, &bb)?;
     }
     if !args.material_springs {
         note_glued_springs(&data, &scenes, &params)?;
@@ -401,6 +402,20 @@ mod tests {
         // Its search, drawn beside it.
         let svg = std::fs::read_to_string(dir.join("fit.svg")).unwrap();
         assert!(svg.contains("fit: rope, CMA-ES"), "{svg}");
+        // And its spring graph: every spring an edge between two of its particles.
+        let ply = std::fs::read_to_string(dir.join("springs.ply")).unwrap();
+        let count = |element: &str| -> usize {
+            let line = ply.lines().find(|l| l.starts_with(element)).unwrap();
+            line.rsplit(' ').next().unwrap().parse().unwrap()
+        };
+        let (vertices, edges) = (count("element vertex"), count("element edge"));
+        let body: Vec<&str> = ply.split("end_header\n").nth(1).unwrap().lines().collect();
+        assert_eq!(body.len(), vertices + edges);
+        assert!(edges > vertices, "{edges} springs for {vertices} particles");
+        for line in &body[vertices..] {
+            let ends: Vec<usize> = line.split(' ').map(|v| v.parse().unwrap()).collect();
+            assert!(ends.len() == 2 && ends[0] != ends[1] && ends.iter().all(|&v| v < vertices));
+        }
         // A run written before the field existed was fitted with the default rule.
         let mut json: serde_json::Value = serde_json::from_str(&text).unwrap();
         json.as_object_mut().unwrap().remove("substep");

@@ -292,7 +292,7 @@ pub fn warn_if_unconnected(
     scene: &Scene,
     params: &springs::SpringParams,
     options: springs::BackboneOptions,
-) -> anyhow::Result<()> {
+) -> anyhow::Result<springs::Backbone> {
     let bb = scene.backbone(params, &scene.sim_config(), options)?;
     let loose = bb.unconnected_free_particles();
     if loose > 0 {
@@ -303,7 +303,36 @@ pub fn warn_if_unconnected(
             params.threshold
         );
     }
-    Ok(())
+    Ok(bb)
+}
+
+/// Writes `bb`'s spring graph at its rest shape (the scene's start frame) as a PLY with one
+/// vertex per particle and one edge per spring, for a point-cloud viewer (MeshLab, CloudCompare,
+/// Blender): where the threshold joined the object, where it glued touching parts, which
+/// particles hang loose. Colours: held particles blue, free particles without a spring red,
+/// the scene's added particles (hidden chain particles, volume fill) light grey, tracked ones
+/// dark grey.
+pub fn write_spring_graph(
+    path: &Path,
+    scene: &Scene,
+    bb: &springs::Backbone,
+) -> anyhow::Result<()> {
+    let mut connected = vec![false; bb.num_particles()];
+    for [a, b] in bb.springs() {
+        connected[*a as usize] = true;
+        connected[*b as usize] = true;
+    }
+    let colors: Vec<[f32; 3]> = (0..bb.num_particles())
+        .map(
+            |i| match (bb.held()[i] >= 0, connected[i], i < scene.tracked) {
+                (true, _, _) => [0.12, 0.47, 0.71],
+                (false, false, _) => [0.84, 0.15, 0.16],
+                (false, true, true) => [0.3, 0.3, 0.3],
+                (false, true, false) => [0.7, 0.7, 0.7],
+            },
+        )
+        .collect();
+    crate::report::write_ply_edges(path, bb.rest_positions(), Some(&colors), bb.springs())
 }
 
 /// Prints a note when the reference construction glues parts together: some of `scenes` (the

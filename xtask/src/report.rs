@@ -17,11 +17,26 @@ pub fn write_json(path: &Path, value: &impl serde::Serialize) -> anyhow::Result<
 
 /// Writes an ASCII PLY point cloud (vertices with optional 8-bit colours), atomically.
 pub fn write_ply(path: &Path, points: &[Vec3], colors: Option<&[[f32; 3]]>) -> anyhow::Result<()> {
+    write_ply_edges(path, points, colors, &[])
+}
+
+/// [`write_ply`] with edges between vertex pairs (an `edge` element, which MeshLab,
+/// CloudCompare and Blender draw as lines), atomically.
+pub fn write_ply_edges(
+    path: &Path,
+    points: &[Vec3],
+    colors: Option<&[[f32; 3]]>,
+    edges: &[[u32; 2]],
+) -> anyhow::Result<()> {
     let mut s = String::new();
     writeln!(s, "ply\nformat ascii 1.0\nelement vertex {}", points.len())?;
     s.push_str("property float x\nproperty float y\nproperty float z\n");
     if colors.is_some() {
         s.push_str("property uchar red\nproperty uchar green\nproperty uchar blue\n");
+    }
+    if !edges.is_empty() {
+        writeln!(s, "element edge {}", edges.len())?;
+        s.push_str("property int vertex1\nproperty int vertex2\n");
     }
     s.push_str("end_header\n");
     for (i, p) in points.iter().enumerate() {
@@ -31,6 +46,9 @@ pub fn write_ply(path: &Path, points: &[Vec3], colors: Option<&[[f32; 3]]>) -> a
             write!(s, " {} {} {}", b(c[i][0]), b(c[i][1]), b(c[i][2]))?;
         }
         s.push('\n');
+    }
+    for [a, b] in edges {
+        writeln!(s, "{a} {b}")?;
     }
     dataset::write_atomic(path, s.as_bytes()).with_context(|| format!("writing {}", path.display()))
 }
