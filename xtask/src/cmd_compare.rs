@@ -47,6 +47,10 @@ pub struct CompareArgs {
     /// Also write the comparison as JSON here.
     #[arg(long)]
     pub json: Option<PathBuf>,
+    /// Draw it as SVG here: both models' MDE per step (when every episode is compared) and
+    /// each episode's MDE under one against the other.
+    #[arg(long)]
+    pub plot: Option<PathBuf>,
 }
 
 /// Dataset indices `start..end` (half-open) of the episodes to compare.
@@ -93,6 +97,9 @@ pub(crate) struct EvalFile {
     /// The report's summaries (`mde_cm`, `deform_l1_m`, ...), each with its `mean`.
     #[serde(default)]
     pub(crate) metrics: serde_json::Value,
+    /// Per metric, its mean over the report's episodes at each step.
+    #[serde(default)]
+    pub(crate) per_step_cm: serde_json::Value,
 }
 
 /// One metric's paired comparison.
@@ -231,7 +238,57 @@ pub fn run(args: &CompareArgs) -> anyhow::Result<()> {
     if let Some(path) = &args.json {
         write_json(path, &c)?;
     }
+    if let Some(path) = &args.plot {
+        plot(path, &before, &after, &c, args.episodes.is_none())?;
+    }
     Ok(())
+}
+
+/// Writes `compare --plot`: the per-step curves only when every episode is compared (the
+/// reports' per-step means are over all their episodes).
+fn plot(
+    path: &Path,
+    before: &EvalFile,
+    after: &EvalFile,
+    c: &Comparison,
+    all_episodes: bool,
+) -> anyhow::Result<()> {
+    let curve = |f: &EvalFile| -> Option<Vec<f64>> {
+        f.per_step_cm["mde_cm"]
+            .as_array()?
+            .iter()
+            .map(serde_json::Value::as_f64)
+            .collect()
+    };
+    let curves = match (curve(before), curve(after)) {
+        (Some(b), Some(a)) if all_episodes => Some((b, a)),
+        _ => None,
+    };
+    let in_range = |e: &&EpisodeScore| {
+        c.episode_range
+            .is_none_or(|r| (r.start..r.end).contains(&e.episode))
+    };
+    let mde = |f: &EvalFile| -> Vec<f64> {
+        f.per_episode
+            .iter()
+            .flatten()
+            .filter(in_range)
+            .map(|e| e.mde_cm)
+            .collect()
+    };
+    let pairs: Vec<(f64, f64)> = mde(before).into_iter().zip(mde(after)).collect();
+    crate::plots::compare_svg(
+        path,
+        &crate::plots::CompareCurves {
+            title: format!("{} ({} split, {} protocol)", c.object, c.split, c.protocol),
+            labels: [
+                format!("before: {}", c.models[0]),
+                format!("after: {}", c.models[1]),
+            ],
+            per_step: curves.as_ref().map(|(b, a)| [b.as_slice(), a.as_slice()]),
+            pairs: &pairs,
+        },
+    )
 }
 
 pub(crate) fn read_eval(path: &Path) -> anyhow::Result<EvalFile> {
@@ -387,6 +444,7 @@ mod tests {
             dataset: None,
             diverged: Some(0),
             metrics: serde_json::Value::Null,
+            per_step_cm: serde_json::Value::Null,
         }
     }
 
@@ -484,6 +542,25 @@ mod tests {
             parse_range(" 3 .. 8").unwrap(),
             EpisodeRange { start: 3, end: 8 }
         );
+        // The picture of a range counts its episodes only, and leaves out the per-step
+        // curves, which are means over every episode of a report.
+        let dir = std::env::temp_dir().join(format!("pgrd-compare-plot-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let with_steps = |mut f: EvalFile| {
+            f.per_step_cm = serde_json::json!({ "mde_cm": [1.0, 2.0] });
+            f
+        };
+        let (b, a) = (with_steps(b), with_steps(a));
+        let path = dir.join("c.svg");
+        plot(&path, &b, &a, &c, false).unwrap();
+        let svg = std::fs::read_to_string(&path).unwrap();
+        assert!(svg.contains("after: pgrd lower on 4 of 4"), "{svg}");
+        assert!(!svg.contains("MDE per step"));
+        plot(&path, &b, &a, &all, true).unwrap();
+        let svg = std::fs::read_to_string(&path).unwrap();
+        assert!(svg.contains("after: pgrd lower on 4 of 6"), "{svg}");
+        assert!(svg.contains("MDE per step"));
+        std::fs::remove_dir_all(&dir).ok();
     }
 
     #[test]

@@ -7,7 +7,7 @@ use std::time::Instant;
 
 use anyhow::Context;
 
-use crate::{cmd_diagnose, cmd_eval, cmd_plan, cmd_render, cmd_train};
+use crate::{cmd_compare, cmd_diagnose, cmd_eval, cmd_plan, cmd_render, cmd_train};
 
 /// Where the tour reads and writes.
 pub struct TourPaths {
@@ -39,6 +39,7 @@ impl TourPaths {
 enum Command {
     Train,
     Eval,
+    Compare,
     Render,
     Diagnose,
     Plan,
@@ -49,6 +50,7 @@ impl Command {
         match self {
             Command::Train => "train",
             Command::Eval => "eval",
+            Command::Compare => "compare",
             Command::Render => "render",
             Command::Diagnose => "diagnose",
             Command::Plan => "plan",
@@ -94,6 +96,17 @@ fn stages(p: &TourPaths, iterations: usize) -> Vec<Stage> {
                 &run,
                 "--save-predictions",
                 &out("predictions"),
+            ],
+        ),
+        stage(
+            Command::Compare,
+            &[
+                "--before",
+                &p.fitted.join("eval_val.json").display().to_string(),
+                "--after",
+                &p.run().join("eval_pgrd_val.json").display().to_string(),
+                "--plot",
+                &out("compare.svg"),
             ],
         ),
         stage(
@@ -174,6 +187,7 @@ pub fn run(p: &TourPaths, iterations: usize, backbone_mde_cm: f64) -> anyhow::Re
                     }
                 );
             }
+            Command::Compare => cmd_compare::run(&parse(&stage)?)?,
             Command::Render => cmd_render::run(&parse(&stage)?)?,
             Command::Diagnose => drop(cmd_diagnose::run(&parse(&stage)?)?),
             Command::Plan => cmd_plan::run(&parse(&stage)?)?,
@@ -183,7 +197,8 @@ pub fn run(p: &TourPaths, iterations: usize, backbone_mde_cm: f64) -> anyhow::Re
     println!(
         "\nthe tour wrote under {}: run/ (backbone.json, residual.safetensors, train.json, \
          train.svg (the training curves), eval_pgrd_val.json), predictions/ (each val episode's predicted and recorded \
-         trajectories, safetensors), render/ (frames and compare.gif), report/report.html (open \
+         trajectories, safetensors), compare.svg (both models' error per step and per \
+         episode), render/ (frames and compare.gif), report/report.html (open \
          it in a browser), plan/ (rope-lift.json, .svg and a GIF per model) ({:.1} s)",
         p.out.display(),
         t0.elapsed().as_secs_f64()
@@ -207,7 +222,7 @@ mod tests {
         let stages = stages(&p, 300);
         let order: Vec<_> = stages.iter().map(|s| s.command).collect();
         use Command::*;
-        assert_eq!(order, [Train, Eval, Render, Diagnose, Plan]);
+        assert_eq!(order, [Train, Eval, Compare, Render, Diagnose, Plan]);
         for s in &stages {
             match s.command {
                 Train => {
@@ -216,6 +231,11 @@ mod tests {
                     assert_eq!(a.run, Path::new("out/demo/tour/run"));
                 }
                 Eval => drop(parse::<cmd_eval::EvalArgs>(s).unwrap()),
+                Compare => {
+                    let a: cmd_compare::CompareArgs = parse(s).unwrap();
+                    assert_eq!(a.before, Path::new("out/demo/rope/eval_val.json"));
+                    assert_eq!(a.after, Path::new("out/demo/tour/run/eval_pgrd_val.json"));
+                }
                 Render => drop(parse::<cmd_render::RenderArgs>(s).unwrap()),
                 Diagnose => drop(parse::<cmd_diagnose::DiagnoseArgs>(s).unwrap()),
                 Plan => {

@@ -210,11 +210,12 @@ pub fn trailing_ratio(loss: &[f64], backbone: &[f64], window: usize) -> Vec<f64>
 
 type Area<'a> = DrawingArea<SVGBackend<'a>, Shift>;
 
-/// One panel of [`train_svg`]: `curves` (colour, points) over the optimiser steps, titled by
-/// `caption`, the y axis from `y.0` to `y.1`.
+/// One panel of curves (colour, points) against a step count, titled by `caption`, the y axis
+/// from `y.0` to `y.1`.
 fn panel<'a, 'b>(
     area: &'a Area<'b>,
     caption: &str,
+    x_desc: &str,
     y_desc: &str,
     x_right: f64,
     y: (f64, f64),
@@ -228,7 +229,7 @@ fn panel<'a, 'b>(
         .build_cartesian_2d(0.0..x_right, y.0..y.1)?;
     chart
         .configure_mesh()
-        .x_desc("optimiser step")
+        .x_desc(x_desc)
         .y_desc(y_desc)
         .x_label_formatter(&|v| format!("{v:.0}"))
         .y_label_formatter(&|v| format!("{v:.2}"))
@@ -300,6 +301,7 @@ pub fn train_svg(path: &Path, c: &TrainCurves<'_>) -> anyhow::Result<()> {
         panel(
             area,
             &format!("training rollout loss (mean of the last {w} steps)"),
+            "optimiser step",
             c.unit,
             right,
             (0.0, linear_top(loss.iter().copied())),
@@ -310,6 +312,7 @@ pub fn train_svg(path: &Path, c: &TrainCurves<'_>) -> anyhow::Result<()> {
             panel(
                 area,
                 "network / backbone loss, same segments (grey: 1, the backbone)",
+                "optimiser step",
                 "ratio",
                 right,
                 (lo, hi),
@@ -343,6 +346,7 @@ pub fn train_svg(path: &Path, c: &TrainCurves<'_>) -> anyhow::Result<()> {
             let mut chart = panel(
                 area,
                 &caption,
+                "optimiser step",
                 "cm",
                 right,
                 y,
@@ -352,6 +356,92 @@ pub fn train_svg(path: &Path, c: &TrainCurves<'_>) -> anyhow::Result<()> {
             if let Some(p) = kept {
                 chart.draw_series(std::iter::once(Circle::new(p, 7, GREEN.stroke_width(3))))?;
             }
+        }
+        root.present()?;
+    }
+    dataset::write_atomic(path, svg.as_bytes())
+        .with_context(|| format!("writing {}", path.display()))
+}
+
+/// What [`compare_svg`] draws.
+pub struct CompareCurves<'a> {
+    /// Object, split and protocol, for the title.
+    pub title: String,
+    /// The reference model's label, then the compared one's.
+    pub labels: [String; 2],
+    /// Each report's MDE per step over its episodes, cm (`None`: not drawn, e.g. when only
+    /// some episodes are compared).
+    pub per_step: Option<[&'a [f64]; 2]>,
+    /// Per paired episode, its MDE under the reference and under the compared model, cm.
+    pub pairs: &'a [(f64, f64)],
+}
+
+/// `compare.svg`: the two models' MDE per step (when given), and per episode the compared
+/// model's MDE against the reference's, one dot each: below the diagonal the compared model
+/// errs less on that episode.
+pub fn compare_svg(path: &Path, c: &CompareCurves<'_>) -> anyhow::Result<()> {
+    let panels = 1 + usize::from(c.per_step.is_some());
+    let mut svg = String::new();
+    {
+        let root =
+            SVGBackend::with_string(&mut svg, (760, 40 + 300 * panels as u32)).into_drawing_area();
+        root.fill(&WHITE)?;
+        let root = root.titled(&format!("compare: {}", c.title), ("sans-serif", 18))?;
+        let areas = root.split_evenly((panels, 1));
+        let mut areas = areas.iter();
+        // Only a drawn curve takes a panel.
+        if let Some([before, after]) = c.per_step
+            && let Some(area) = areas.next()
+        {
+            let steps = before.len().max(after.len()).max(2) as f64;
+            let top = linear_top(before.iter().chain(after).copied());
+            panel(
+                area,
+                &format!(
+                    "MDE per step, cm: {} (grey), {} (blue)",
+                    c.labels[0], c.labels[1]
+                ),
+                "prediction step",
+                "cm",
+                steps,
+                (0.0, top),
+                &[(GREY, by_step(before)), (BLUE, by_step(after))],
+            )?;
+        }
+        if let Some(area) = areas.next() {
+            let top = linear_top(c.pairs.iter().flat_map(|&(b, a)| [b, a]));
+            let lower = c.pairs.iter().filter(|(b, a)| a < b).count();
+            let mut chart = ChartBuilder::on(area)
+                .caption(
+                    format!(
+                        "MDE per episode, cm: {} lower on {lower} of {} (below the line)",
+                        c.labels[1],
+                        c.pairs.len()
+                    ),
+                    ("sans-serif", 15),
+                )
+                .margin(8)
+                .x_label_area_size(36)
+                .y_label_area_size(60)
+                .build_cartesian_2d(0.0..top, 0.0..top)?;
+            chart
+                .configure_mesh()
+                .x_desc(c.labels[0].as_str())
+                .y_desc(c.labels[1].as_str())
+                .x_label_formatter(&|v| format!("{v:.2}"))
+                .y_label_formatter(&|v| format!("{v:.2}"))
+                .light_line_style(WHITE.mix(0.0))
+                .draw()?;
+            chart.draw_series(LineSeries::new(
+                [(0.0, 0.0), (top, top)],
+                GREY.stroke_width(1),
+            ))?;
+            chart.draw_series(
+                c.pairs
+                    .iter()
+                    .filter(|(b, a)| b.is_finite() && a.is_finite())
+                    .map(|&p| Circle::new(p, 4, BLUE.filled())),
+            )?;
         }
         root.present()?;
     }
@@ -394,6 +484,33 @@ mod tests {
                 .iter()
                 .all(|r| r.is_nan())
         );
+    }
+
+    #[test]
+    fn the_comparison_counts_the_episodes_below_the_line() {
+        let dir = std::env::temp_dir().join(format!("pgrd-compare-svg-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("compare.svg");
+        let pairs = [(2.0, 1.5), (1.0, 1.2), (3.0, 2.0)];
+        let curves = CompareCurves {
+            title: "rope (val, paper)".into(),
+            labels: ["before: spring-mass".into(), "after: pgrd".into()],
+            per_step: Some([&[1.0, 2.0, 3.0], &[1.0, 1.5, 2.5]]),
+            pairs: &pairs,
+        };
+        compare_svg(&path, &curves).unwrap();
+        let svg = std::fs::read_to_string(&path).unwrap();
+        assert!(svg.contains("after: pgrd lower on 2 of 3"), "{svg}");
+        assert!(svg.contains("MDE per step"));
+        let only_pairs = CompareCurves {
+            per_step: None,
+            ..curves
+        };
+        compare_svg(&path, &only_pairs).unwrap();
+        let svg = std::fs::read_to_string(&path).unwrap();
+        assert!(!svg.contains("MDE per step"));
+        assert!(svg.contains("after: pgrd lower on 2 of 3"), "{svg}");
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]
