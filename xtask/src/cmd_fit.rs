@@ -270,7 +270,11 @@ pub fn run(args: &FitArgs) -> anyhow::Result<BackboneFile> {
     let controller_springs = controller_start.map(|_| ControllerFamily::rule(&outcome.best));
     if let Some(scene) = scenes.first() {
         let bb = warn_if_unconnected(scene, &params, Default::default())?;
-        write_spring_graph(&args.run.join("springs.ply"), scene, &bb)?;
+        let ply = args.run.join("springs.ply");
+        crate::plots::or_warn(
+            write_spring_graph(&ply, scene, &bb),
+            &ply.display().to_string(),
+        );
     }
     if !args.material_springs {
         note_glued_springs(&data, &scenes, &params)?;
@@ -293,11 +297,11 @@ pub fn run(args: &FitArgs) -> anyhow::Result<BackboneFile> {
         controller_starts: controller_starts.clone(),
     };
     write_json(&backbone_path(&args.run), &file)?;
-    crate::plots::fit_svg(
-        &args.run.join("fit.svg"),
-        &data.meta.object,
-        &file.fit.history,
-    )?;
+    let fit_svg = args.run.join("fit.svg");
+    crate::plots::or_warn(
+        crate::plots::fit_svg(&fit_svg, &data.meta.object, &file.fit.history),
+        &fit_svg.display().to_string(),
+    );
     println!(
         "fitted {} on {} train episodes in {:.1} s: stiffness {:.0} N/m, damping {:.1} N·s/m, threshold {:.4} m, max springs {}, friction {:.3}; loss {:.3e} m² -> {}",
         data.meta.object,

@@ -813,16 +813,19 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
             backbone_mde_cm: s.backbone_mde_cm,
             best_step: s.best_step,
         });
-        crate::plots::train_svg(
-            &args.run.join("train.svg"),
-            &crate::plots::TrainCurves {
-                title: format!("{} ({})", data.meta.object, trainer.net.config().variant()),
-                loss,
-                backbone_loss: base_loss,
-                unit,
-                checks,
-            },
-        )
+        let svg = args.run.join("train.svg");
+        let curves = crate::plots::TrainCurves {
+            title: format!("{} ({})", data.meta.object, trainer.net.config().variant()),
+            loss,
+            backbone_loss: base_loss,
+            unit,
+            checks,
+        };
+        crate::plots::or_warn(
+            crate::plots::train_svg(&svg, &curves),
+            &svg.display().to_string(),
+        );
+        Ok(())
     };
     while trainer.step < args.iterations {
         match trainer.train_step(&set) {

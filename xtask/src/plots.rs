@@ -15,6 +15,14 @@ const RED: RGBColor = RGBColor(214, 39, 40);
 const GREEN: RGBColor = RGBColor(44, 160, 44);
 const GREY: RGBColor = RGBColor(127, 127, 127);
 
+/// Reports a picture that could not be drawn as a warning: the run's numbers are written
+/// already, and a long training must not stop for its plot.
+pub fn or_warn(drawn: anyhow::Result<()>, what: &str) {
+    if let Err(e) = drawn {
+        eprintln!("warning: could not draw {what}: {e:#}");
+    }
+}
+
 /// The mean of the finite values among the last `window` entries up to each index (`NaN` where
 /// there is none). Training losses are one batch each, too noisy to read step by step; the
 /// backbone's yardstick is scored only every few steps, `NaN` between.
