@@ -74,7 +74,8 @@ impl Default for VideoOptions {
 /// Arguments of `render`.
 #[derive(clap::Args)]
 pub struct RenderArgs {
-    /// Dataset directory (a reference-world dataset with `truth_ep_NNNN.safetensors`).
+    /// Dataset directory: a reference-world dataset with `truth_ep_NNNN.safetensors`, or a
+    /// recording, compared with its own tracked points.
     #[arg(long)]
     pub data: PathBuf,
     /// Run directory holding backbone.json (and residual.safetensors for PGRD).

@@ -75,7 +75,8 @@ enum Command {
     Compare(cmd_compare::CompareArgs),
     /// Point-cloud metrics of two .npy clouds as JSON (MDE, Chamfer, EMD).
     Metrics(cmd_metrics::MetricsArgs),
-    /// Render a run's predicted and the ground-truth frames of an episode; J, F, LPIPS.
+    /// Render a run's predicted and the ground-truth frames of an episode (a recording's own
+    /// tracked points where it has no ground-truth Gaussians); J, F, LPIPS.
     Render(cmd_render::RenderArgs),
     /// MPPI planning with a run's model, executed in closed loop in the reference world.
     Plan(cmd_plan::PlanArgs),
