@@ -169,20 +169,35 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
         args.out.display(),
         t0.elapsed().as_secs_f64()
     );
-    if args.no_tour {
-        return Ok(());
+    let rope_mde = rows.iter().find(|r| r.0 == TOUR_OBJECT).map(|r| r.1);
+    match (args.no_tour, rope_mde) {
+        (true, _) => {
+            // The pictures of an earlier tour would be shown as this run's.
+            let _ = std::fs::remove_dir_all(args.out.join("tour"));
+        }
+        (false, None) => {
+            let _ = std::fs::remove_dir_all(args.out.join("tour"));
+            println!("\n(no tour: it runs on the {TOUR_OBJECT} fixture, which --objects left out)");
+        }
+        (false, Some(rope_mde)) => crate::demo_tour::run(
+            &crate::demo_tour::TourPaths::new(
+                &args.fixtures.join(TOUR_OBJECT),
+                &args.out.join(TOUR_OBJECT),
+                &args.out.join("tour"),
+            ),
+            args.tour_iterations,
+            rope_mde,
+        )?,
     }
-    let Some(rope_mde) = rows.iter().find(|r| r.0 == TOUR_OBJECT).map(|r| r.1) else {
-        println!("\n(no tour: it runs on the {TOUR_OBJECT} fixture, which --objects left out)");
-        return Ok(());
-    };
-    crate::demo_tour::run(
-        &crate::demo_tour::TourPaths::new(
-            &args.fixtures.join(TOUR_OBJECT),
-            &args.out.join(TOUR_OBJECT),
-            &args.out.join("tour"),
-        ),
-        args.tour_iterations,
-        rope_mde,
-    )
+    crate::demo_index::write(&args.out, &rows)?;
+    println!(
+        "\nopen {} in a browser: every object's pictures{}",
+        args.out.join("index.html").display(),
+        if args.out.join("tour").is_dir() {
+            " and the tour's"
+        } else {
+            ""
+        }
+    );
+    Ok(())
 }

@@ -25,6 +25,7 @@ mod cmd_score;
 mod cmd_screen;
 mod cmd_train;
 mod common;
+mod demo_index;
 mod demo_tour;
 mod eval_horizon;
 mod eval_save;
