@@ -303,7 +303,7 @@ pub fn run(args: &FitArgs) -> anyhow::Result<BackboneFile> {
         &fit_svg.display().to_string(),
     );
     println!(
-        "fitted {} on {} train episodes in {:.1} s: stiffness {:.0} N/m, damping {:.1} N·s/m, threshold {:.4} m, max springs {}, friction {:.3}; loss {:.3e} m² -> {}",
+        "fitted {} on {} train episodes in {:.1} s: stiffness {:.0} N/m, damping {:.1} N·s/m, threshold {:.4} m, max springs {}, friction {:.3}; loss {:.3e} m² -> {} (and fit.svg, springs.ply)",
         data.meta.object,
         scenes.len(),
         t0.elapsed().as_secs_f64(),

@@ -955,7 +955,7 @@ fn train_one(args: &TrainArgs) -> anyhow::Result<()> {
     say(
         args,
         format!(
-            "pgrd ({}) on {}: {} steps, {} loss {:.4} -> {:.4} {unit} (mean of first/last 20){yardstick}, {} diverged rollouts, {:.1} s -> {}",
+            "pgrd ({}) on {}: {} steps, {} loss {:.4} -> {:.4} {unit} (mean of first/last 20){yardstick}, {} diverged rollouts, {:.1} s -> {} (curves: train.svg)",
             trainer.net.config().variant(),
             data.meta.object,
             trainer.step,
