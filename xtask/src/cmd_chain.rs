@@ -108,6 +108,30 @@ impl ChainBranch {
     }
 }
 
+/// `<out>/chain.svg`: the main chain's held-out MDE, the model it started from and each
+/// round's written model, labelled with the effect the round added or what it wrote.
+fn draw(out: &Path, chain: &ChainFile) {
+    let Some(first) = chain.rounds.first() else {
+        return;
+    };
+    let mut steps = vec![(first.model_diagnosed.clone(), first.heldout_mde_as_given_cm)];
+    steps.extend(chain.rounds.iter().map(|r| {
+        let label = match &r.added {
+            Some(effect) => format!("+ {effect}"),
+            None => r.written.clone(),
+        };
+        (label, r.heldout_mde_written_cm)
+    }));
+    let path = out.join("chain.svg");
+    let object = Path::new(&chain.data)
+        .file_name()
+        .map_or_else(|| chain.data.clone(), |n| n.to_string_lossy().into_owned());
+    crate::plots::or_warn(
+        crate::plots::chain_svg(&path, &object, &steps),
+        &path.display().to_string(),
+    );
+}
+
 /// One round of a chain.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ChainRound {
@@ -247,6 +271,7 @@ pub fn run(args: &ChainArgs) -> anyhow::Result<ChainFile> {
         chain.final_run = chain.rounds.last().map(|r| r.written_run.clone());
         chain.test = None;
         write_json(&path, &chain)?;
+        draw(out, &chain);
     }
     let last = chain.rounds.last().context("the chain ran no round")?;
     chain.stopped = Some(stop_reason(last, args.max_rounds));
@@ -296,6 +321,7 @@ pub fn run(args: &ChainArgs) -> anyhow::Result<ChainFile> {
     }
     chain.test = test_scores(d, out, &final_run)?;
     write_json(&path, &chain)?;
+    draw(out, &chain);
     print_summary(&chain, d);
     Ok(chain)
 }
@@ -765,6 +791,15 @@ mod tests {
         let test = whole.test.as_ref().expect("the dev split has a test split");
         assert_eq!(test.episodes, 3);
         assert!(test.mde_final_cm.is_finite() && test.mde_as_given_cm.is_finite());
+        // The picture labels the start and every round's written model with its error.
+        let svg = std::fs::read_to_string(dir.join("whole/chain.svg")).unwrap();
+        let start = format!(
+            "{}: {:.3}",
+            rounds[0].model_diagnosed, rounds[0].heldout_mde_as_given_cm
+        );
+        assert!(svg.contains(&start), "{start}");
+        let first = format!("+ actuation-delay: {:.3}", rounds[0].heldout_mde_written_cm);
+        assert!(svg.contains(&first), "{first}");
 
         // A finished chain run again reads its rounds and redoes none.
         let report = dir.join("whole/round-1/report.json");

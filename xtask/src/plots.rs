@@ -457,6 +457,57 @@ pub fn compare_svg(path: &Path, c: &CompareCurves<'_>) -> anyhow::Result<()> {
         .with_context(|| format!("writing {}", path.display()))
 }
 
+/// `chain.svg`: the held-out MDE of the model a diagnosis chain starts from (round 0) and of
+/// the model each round wrote, each point labelled with what it holds (`steps`: label, cm).
+pub fn chain_svg(path: &Path, title: &str, steps: &[(String, f64)]) -> anyhow::Result<()> {
+    svg_to(path, |root| {
+        let top = linear_top(steps.iter().map(|s| s.1));
+        let right = steps.len().saturating_sub(1).max(1) as f64;
+        let mut chart = ChartBuilder::on(root)
+            .caption(format!("chain: {title}"), ("sans-serif", 18))
+            .margin(16)
+            .x_label_area_size(36)
+            .y_label_area_size(60)
+            .build_cartesian_2d(-0.3..right + 0.3, 0.0..top)?;
+        chart
+            .configure_mesh()
+            .x_desc("round (0: the model the chain starts from)")
+            .y_desc("held-out MDE, cm")
+            .x_labels(steps.len().max(2))
+            .x_label_formatter(&|v| {
+                if (v - v.round()).abs() < 1e-6 && *v >= 0.0 {
+                    format!("{v:.0}")
+                } else {
+                    String::new()
+                }
+            })
+            .light_line_style(WHITE.mix(0.0))
+            .draw()?;
+        let points: Vec<(f64, f64)> = steps
+            .iter()
+            .enumerate()
+            .filter(|(_, s)| s.1.is_finite())
+            .map(|(k, s)| (k as f64, s.1))
+            .collect();
+        chart.draw_series(LineSeries::new(
+            points.iter().copied(),
+            BLUE.stroke_width(2),
+        ))?;
+        chart.draw_series(points.iter().map(|&p| Circle::new(p, 4, BLUE.filled())))?;
+        let style = TextStyle::from(("sans-serif", 13).into_font()).color(&BLACK);
+        for (k, (label, cm)) in steps.iter().enumerate() {
+            if cm.is_finite() {
+                chart.draw_series(std::iter::once(Text::new(
+                    format!("{label}: {cm:.3}"),
+                    (k as f64 - 0.25, cm + top * 0.04),
+                    style.clone(),
+                )))?;
+            }
+        }
+        Ok(())
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -518,6 +569,28 @@ mod tests {
         let svg = std::fs::read_to_string(&path).unwrap();
         assert!(!svg.contains("MDE per step"));
         assert!(svg.contains("after: pgrd lower on 2 of 3"), "{svg}");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn the_chain_picture_labels_every_round() {
+        let dir = std::env::temp_dir().join(format!("pgrd-chain-svg-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("chain.svg");
+        let steps = vec![
+            ("spring-mass".to_string(), 38.5),
+            ("+ bending".to_string(), 29.4),
+            ("control refit".to_string(), 15.8),
+        ];
+        chain_svg(&path, "duster", &steps).unwrap();
+        let svg = std::fs::read_to_string(&path).unwrap();
+        for label in [
+            "spring-mass: 38.500",
+            "+ bending: 29.400",
+            "control refit: 15.800",
+        ] {
+            assert!(svg.contains(label), "{label}");
+        }
         std::fs::remove_dir_all(&dir).unwrap();
     }
 
