@@ -1,7 +1,8 @@
-//! A run's own progress as pictures: how a fit's CMA-ES search converged (`fit.svg`) and how a
-//! network trained (`train.svg`). Drawn from the numbers `backbone.json` and `train.json`
-//! record, written beside them (atomically) whenever those are, so a long run can be watched
-//! in a browser and a finished one read at a glance.
+//! A run's own progress as pictures: how a fit's CMA-ES search converged (`fit.svg`), how a
+//! network trained (`train.svg`), how two evaluations compare (`compare --plot`) and what each
+//! round of a diagnosis chain bought (`chain.svg`). Drawn from the numbers the JSON files beside
+//! them record, written (atomically) whenever those are, so a long run can be watched in a
+//! browser and a finished one read at a glance.
 
 use std::path::Path;
 
