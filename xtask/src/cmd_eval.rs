@@ -14,7 +14,8 @@ use crate::common::{
     NetworkPath, ProtocolArg, load_scenes, predict_tracked, read_backbone, read_residual,
     warn_if_unconnected,
 };
-use crate::report::{Curve, plot_curves, write_json};
+use crate::plots::{Curve, plot_curves};
+use crate::report::write_json;
 
 /// Arguments of `eval`.
 #[derive(clap::Args)]

@@ -14,7 +14,8 @@ use plan::{
 use serde::Serialize;
 
 use crate::common::{BackboneFile, read_backbone, read_residual};
-use crate::report::{Curve, plot_curves, write_json};
+use crate::plots::{Curve, plot_curves};
+use crate::report::write_json;
 
 /// `--model`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, Serialize)]

@@ -11,9 +11,20 @@ use plotters::coord::Shift;
 use plotters::coord::types::RangedCoordf64;
 use plotters::prelude::*;
 
-const BLUE: RGBColor = RGBColor(31, 119, 180);
-const RED: RGBColor = RGBColor(214, 39, 40);
-const GREEN: RGBColor = RGBColor(44, 160, 44);
+type Area<'a> = DrawingArea<SVGBackend<'a>, Shift>;
+
+/// Line colours in order (matplotlib's first six, which readers of the field know).
+const PALETTE: [RGBColor; 6] = [
+    RGBColor(31, 119, 180),
+    RGBColor(214, 39, 40),
+    RGBColor(44, 160, 44),
+    RGBColor(255, 127, 14),
+    RGBColor(148, 103, 189),
+    RGBColor(140, 86, 75),
+];
+const BLUE: RGBColor = PALETTE[0];
+const RED: RGBColor = PALETTE[1];
+const GREEN: RGBColor = PALETTE[2];
 const GREY: RGBColor = RGBColor(127, 127, 127);
 
 /// Reports a picture that could not be drawn as a warning: the run's numbers are written
@@ -80,13 +91,15 @@ fn linear_top(values: impl Iterator<Item = f64>) -> f64 {
     if top > 0.0 { top * 1.1 } else { 1.0 }
 }
 
+/// Draws one picture of `size` pixels with `draw` and writes it to `path` as SVG, atomically.
 fn svg_to(
     path: &Path,
-    draw: impl FnOnce(&DrawingArea<SVGBackend<'_>, Shift>) -> anyhow::Result<()>,
+    size: (u32, u32),
+    draw: impl FnOnce(&Area<'_>) -> anyhow::Result<()>,
 ) -> anyhow::Result<()> {
     let mut svg = String::new();
     {
-        let root = SVGBackend::with_string(&mut svg, (760, 460)).into_drawing_area();
+        let root = SVGBackend::with_string(&mut svg, size).into_drawing_area();
         root.fill(&WHITE)?;
         draw(&root)?;
         root.present()?;
@@ -99,7 +112,7 @@ fn svg_to(
 /// median candidate, in m² on a logarithmic axis (the values `backbone.json`'s `fit.history`
 /// holds; a candidate that diverged scores the fit's penalty and lifts the median to it).
 pub fn fit_svg(path: &Path, object: &str, history: &[fit::Generation]) -> anyhow::Result<()> {
-    svg_to(path, |root| {
+    svg_to(path, (760, 460), |root| {
         let series = [
             (
                 "best so far",
@@ -217,8 +230,6 @@ pub fn trailing_ratio(loss: &[f64], backbone: &[f64], window: usize) -> Vec<f64>
         .collect()
 }
 
-type Area<'a> = DrawingArea<SVGBackend<'a>, Shift>;
-
 /// One panel of curves (colour, points) against a step count, titled by `caption`, the y axis
 /// from `y.0` to `y.1`.
 fn panel<'a, 'b>(
@@ -296,11 +307,7 @@ pub fn train_svg(path: &Path, c: &TrainCurves<'_>) -> anyhow::Result<()> {
             .copied()
             .unwrap_or(0) as f64,
     );
-    let mut svg = String::new();
-    {
-        let root =
-            SVGBackend::with_string(&mut svg, (760, 40 + 210 * panels as u32)).into_drawing_area();
-        root.fill(&WHITE)?;
+    svg_to(path, (760, 40 + 210 * panels as u32), |root| {
         let root = root.titled(&format!("train: {}", c.title), ("sans-serif", 18))?;
         let areas = root.split_evenly((panels, 1));
         let mut areas = areas.iter();
@@ -366,10 +373,8 @@ pub fn train_svg(path: &Path, c: &TrainCurves<'_>) -> anyhow::Result<()> {
                 chart.draw_series(std::iter::once(Circle::new(p, 7, GREEN.stroke_width(3))))?;
             }
         }
-        root.present()?;
-    }
-    dataset::write_atomic(path, svg.as_bytes())
-        .with_context(|| format!("writing {}", path.display()))
+        Ok(())
+    })
 }
 
 /// What [`compare_svg`] draws.
@@ -390,11 +395,7 @@ pub struct CompareCurves<'a> {
 /// errs less on that episode.
 pub fn compare_svg(path: &Path, c: &CompareCurves<'_>) -> anyhow::Result<()> {
     let panels = 1 + usize::from(c.per_step.is_some());
-    let mut svg = String::new();
-    {
-        let root =
-            SVGBackend::with_string(&mut svg, (760, 40 + 300 * panels as u32)).into_drawing_area();
-        root.fill(&WHITE)?;
+    svg_to(path, (760, 40 + 300 * panels as u32), |root| {
         let root = root.titled(&format!("compare: {}", c.title), ("sans-serif", 18))?;
         let areas = root.split_evenly((panels, 1));
         let mut areas = areas.iter();
@@ -452,16 +453,14 @@ pub fn compare_svg(path: &Path, c: &CompareCurves<'_>) -> anyhow::Result<()> {
                     .map(|&p| Circle::new(p, 4, BLUE.filled())),
             )?;
         }
-        root.present()?;
-    }
-    dataset::write_atomic(path, svg.as_bytes())
-        .with_context(|| format!("writing {}", path.display()))
+        Ok(())
+    })
 }
 
 /// `chain.svg`: the held-out MDE of the model a diagnosis chain starts from (round 0) and of
 /// the model each round wrote, each point labelled with what it holds (`steps`: label, cm).
 pub fn chain_svg(path: &Path, title: &str, steps: &[(String, f64)]) -> anyhow::Result<()> {
-    svg_to(path, |root| {
+    svg_to(path, (760, 460), |root| {
         let top = linear_top(steps.iter().map(|s| s.1));
         let right = steps.len().saturating_sub(1).max(1) as f64;
         let mut chart = ChartBuilder::on(root)
@@ -505,6 +504,60 @@ pub fn chain_svg(path: &Path, title: &str, steps: &[(String, f64)]) -> anyhow::R
                 )))?;
             }
         }
+        Ok(())
+    })
+}
+
+/// One named curve of a plot; `y[i]` is plotted at `x = x0 + i`.
+pub struct Curve<'a> {
+    /// Legend label.
+    pub label: String,
+    /// Values.
+    pub y: &'a [f64],
+}
+
+/// Plots curves against a step index into an SVG file (written atomically): `eval`'s error per
+/// step, `plan`'s Chamfer distance per planning step.
+pub fn plot_curves(
+    path: &Path,
+    title: &str,
+    x_label: &str,
+    y_label: &str,
+    x0: f64,
+    curves: &[Curve<'_>],
+) -> anyhow::Result<()> {
+    svg_to(path, (720, 420), |root| {
+        let n = curves.iter().map(|c| c.y.len()).max().unwrap_or(1).max(2);
+        let y_max = linear_top(curves.iter().flat_map(|c| c.y.iter().copied()));
+        let mut chart = ChartBuilder::on(root)
+            .caption(title, ("sans-serif", 18))
+            .margin(12)
+            .x_label_area_size(36)
+            .y_label_area_size(52)
+            .build_cartesian_2d(x0..x0 + (n - 1) as f64, 0.0..y_max)?;
+        chart
+            .configure_mesh()
+            .x_desc(x_label)
+            .y_desc(y_label)
+            .light_line_style(WHITE.mix(0.0))
+            .draw()?;
+        for (k, c) in curves.iter().enumerate() {
+            let color = PALETTE[k % PALETTE.len()];
+            let points = c.y.iter().enumerate().filter(|(_, v)| v.is_finite());
+            chart
+                .draw_series(LineSeries::new(
+                    points.map(|(i, v)| (x0 + i as f64, *v)),
+                    color.stroke_width(2),
+                ))?
+                .label(c.label.clone())
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], color));
+        }
+        chart
+            .configure_series_labels()
+            .background_style(WHITE.mix(0.8))
+            .border_style(BLACK)
+            .position(SeriesLabelPosition::UpperLeft)
+            .draw()?;
         Ok(())
     })
 }
