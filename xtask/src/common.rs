@@ -317,11 +317,7 @@ pub fn write_spring_graph(
     scene: &Scene,
     bb: &springs::Backbone,
 ) -> anyhow::Result<()> {
-    let mut connected = vec![false; bb.num_particles()];
-    for [a, b] in bb.springs() {
-        connected[*a as usize] = true;
-        connected[*b as usize] = true;
-    }
+    let connected = bb.connected_particles();
     let colors: Vec<[f32; 3]> = (0..bb.num_particles())
         .map(
             |i| match (bb.held()[i] >= 0, connected[i], i < scene.tracked) {

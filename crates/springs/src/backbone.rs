@@ -436,15 +436,19 @@ impl Backbone {
     pub fn springs(&self) -> &[[u32; 2]] {
         &self.springs
     }
-    /// Free (not held) particles that no spring connects to anything: they fall freely, which
-    /// is almost always a threshold below the particle spacing rather than what a user meant.
-    pub fn unconnected_free_particles(&self) -> usize {
+    /// Per particle, whether some spring joins it to another.
+    pub fn connected_particles(&self) -> Vec<bool> {
         let mut connected = vec![false; self.num_particles()];
         for [a, b] in &self.springs {
             connected[*a as usize] = true;
             connected[*b as usize] = true;
         }
         connected
+    }
+    /// Free (not held) particles that no spring connects to anything: they fall freely, which
+    /// is almost always a threshold below the particle spacing rather than what a user meant.
+    pub fn unconnected_free_particles(&self) -> usize {
+        self.connected_particles()
             .iter()
             .zip(&self.held)
             .filter(|(c, h)| !**c && **h < 0)
