@@ -170,34 +170,31 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
         t0.elapsed().as_secs_f64()
     );
     let rope_mde = rows.iter().find(|r| r.0 == TOUR_OBJECT).map(|r| r.1);
-    match (args.no_tour, rope_mde) {
-        (true, _) => {
-            // The pictures of an earlier tour would be shown as this run's.
-            let _ = std::fs::remove_dir_all(args.out.join("tour"));
-        }
+    let toured = match (args.no_tour, rope_mde) {
+        (true, _) => false,
         (false, None) => {
-            let _ = std::fs::remove_dir_all(args.out.join("tour"));
             println!("\n(no tour: it runs on the {TOUR_OBJECT} fixture, which --objects left out)");
+            false
         }
-        (false, Some(rope_mde)) => crate::demo_tour::run(
-            &crate::demo_tour::TourPaths::new(
-                &args.fixtures.join(TOUR_OBJECT),
-                &args.out.join(TOUR_OBJECT),
-                &args.out.join("tour"),
-            ),
-            args.tour_iterations,
-            rope_mde,
-        )?,
-    }
-    crate::demo_index::write(&args.out, &rows)?;
+        (false, Some(rope_mde)) => {
+            crate::demo_tour::run(
+                &crate::demo_tour::TourPaths::new(
+                    &args.fixtures.join(TOUR_OBJECT),
+                    &args.out.join(TOUR_OBJECT),
+                    &args.out.join("tour"),
+                ),
+                args.tour_iterations,
+                rope_mde,
+            )?;
+            true
+        }
+    };
+    // An earlier run's tour stays on disk; the page shows this run's pictures only.
+    crate::demo_index::write(&args.out, &rows, toured)?;
     println!(
         "\nopen {} in a browser: every object's pictures{}",
         args.out.join("index.html").display(),
-        if args.out.join("tour").is_dir() {
-            " and the tour's"
-        } else {
-            ""
-        }
+        if toured { " and the tour's" } else { "" }
     );
     Ok(())
 }

@@ -41,8 +41,9 @@ fn figures(out: &Path, files: &[(&str, &str)]) -> String {
     html
 }
 
-/// Writes `<out>/index.html` for the demo's `rows` and, when it ran, its tour (`<out>/tour`).
-pub fn write(out: &Path, rows: &[Row]) -> anyhow::Result<()> {
+/// Writes `<out>/index.html` for the demo's `rows` and, when this run made it (`toured`), its
+/// tour (`<out>/tour`).
+pub fn write(out: &Path, rows: &[Row], toured: bool) -> anyhow::Result<()> {
     let mut html = String::from(
         "<!doctype html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">\
          <title>pgrd demo</title><style>\
@@ -97,8 +98,7 @@ pub fn write(out: &Path, rows: &[Row]) -> anyhow::Result<()> {
             ],
         ));
     }
-    let tour = out.join("tour");
-    if tour.is_dir() {
+    if toured {
         html.push_str(
             "<h2 id=\"tour\">The tour, on the rope</h2>\n<p>Each stage ran its own command \
              (printed by the demo). On a fixture's three training episodes the network has \
@@ -156,7 +156,7 @@ mod tests {
             ("rope".to_string(), 2.0, 2.5, 1.9),
             ("a<b".to_string(), 1.0, 1.0, 1.0),
         ];
-        write(&out, &rows).unwrap();
+        write(&out, &rows, true).unwrap();
         let html = std::fs::read_to_string(out.join("index.html")).unwrap();
         assert!(html.contains("<img src=\"rope/fit.svg\""), "{html}");
         assert!(html.contains("<a href=\"rope/springs.ply\">"));
@@ -168,6 +168,10 @@ mod tests {
         assert!(!html.contains("tour/compare.svg"));
         assert!(html.contains("<td>2.000</td><td>2.500</td>"));
         assert!(html.contains("a&lt;b") && !html.contains("a<b"));
+        // A run without the tour does not show an earlier run's.
+        write(&out, &rows, false).unwrap();
+        let html = std::fs::read_to_string(out.join("index.html")).unwrap();
+        assert!(!html.contains("tour/run/train.svg") && html.contains("rope/fit.svg"));
         std::fs::remove_dir_all(&out).unwrap();
     }
 }
