@@ -175,9 +175,12 @@ pub fn run(args: &RefineArgs) -> anyhow::Result<()> {
             }
         );
     }
+    let svg = args.out.join("refine.svg");
+    let drawn = crate::plots::refine_svg(&svg, &data.meta.object, &outcome);
     file.dataset = args.data.display().to_string();
     file.refined = Some(outcome);
     write_json(&backbone_path(&args.out), &file)?;
+    crate::plots::or_warn(drawn, &svg.display().to_string());
     println!(
         "refined {} on {} train episodes in {:.1} s: loss {:.3e} -> {:.3e} m² ({}), stiffness factors e^[{:.2}, {:.2}] -> {}",
         data.meta.object,

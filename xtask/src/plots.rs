@@ -1,6 +1,7 @@
-//! A run's own progress as pictures: how a fit's CMA-ES search converged (`fit.svg`), how a
-//! network trained (`train.svg`), how two evaluations compare (`compare --plot`) and what each
-//! round of a diagnosis chain bought (`chain.svg`). Drawn from the numbers the JSON files beside
+//! A run's own progress as pictures: how a fit's CMA-ES search converged (`fit.svg`), how
+//! `refine` descended (`refine.svg`), how a network trained (`train.svg`), how two evaluations
+//! compare (`compare --plot`), what each round of a diagnosis chain bought (`chain.svg`), and
+//! `eval`'s and `plan`'s curves. Drawn from the numbers the JSON files beside
 //! them record, written (atomically) whenever those are, so a long run can be watched in a
 //! browser and a finished one read at a glance.
 
@@ -252,7 +253,14 @@ fn panel<'a, 'b>(
         .x_desc(x_desc)
         .y_desc(y_desc)
         .x_label_formatter(&|v| format!("{v:.0}"))
-        .y_label_formatter(&|v| format!("{v:.2}"))
+        // Losses in m² are thousandths: two decimals would print them all as 0.00.
+        .y_label_formatter(&|v| {
+            if y.1.abs() < 0.1 {
+                format!("{v:.1e}")
+            } else {
+                format!("{v:.2}")
+            }
+        })
         .light_line_style(WHITE.mix(0.0))
         .draw()?;
     for (color, points) in curves {
@@ -508,6 +516,50 @@ pub fn chain_svg(path: &Path, title: &str, steps: &[(String, f64)]) -> anyhow::R
     })
 }
 
+/// `refine.svg`: the batch loss of every iteration of `refine` (a trailing mean, as
+/// [`smoothing_window`]) against the fitted backbone's loss over every training scene, and
+/// the kept field's loss there, at the iteration after which it was checked.
+pub fn refine_svg(path: &Path, object: &str, outcome: &fit::RefineOutcome) -> anyhow::Result<()> {
+    let batch: Vec<f64> = outcome.history.iter().map(|s| s.batch_loss_m2).collect();
+    let w = smoothing_window(batch.len());
+    let mean = trailing_mean(&batch, w);
+    let steps = batch.len().max(1) as f64;
+    let (lo, hi) = span(
+        mean.iter()
+            .copied()
+            .chain([outcome.initial_loss_m2, outcome.best_loss_m2]),
+    );
+    svg_to(path, (760, 460), |root| {
+        let kept = match outcome.best_iteration {
+            Some(i) => format!("kept: iteration {i}, {:.3e} m²", outcome.best_loss_m2),
+            None => "kept: the fitted backbone (no iteration beat it)".to_string(),
+        };
+        let caption = format!(
+            "refine: {object}; batch loss (mean of the last {w} iterations), grey: the fitted \
+             backbone's {:.3e} m²; {kept}",
+            outcome.initial_loss_m2
+        );
+        let line = vec![
+            (0.0, outcome.initial_loss_m2),
+            (steps, outcome.initial_loss_m2),
+        ];
+        let mut chart = panel(
+            root,
+            &caption,
+            "iteration",
+            "loss, m²",
+            steps,
+            (lo, hi),
+            &[(GREY, line), (BLUE, by_step(&mean))],
+        )?;
+        if let Some(i) = outcome.best_iteration {
+            let p = ((i + 1) as f64, outcome.best_loss_m2);
+            chart.draw_series(std::iter::once(Circle::new(p, 7, GREEN.stroke_width(3))))?;
+        }
+        Ok(())
+    })
+}
+
 /// One named curve of a plot; `y[i]` is plotted at `x = x0 + i`.
 pub struct Curve<'a> {
     /// Legend label.
@@ -645,6 +697,38 @@ mod tests {
         ] {
             assert!(svg.contains(label), "{label}");
         }
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn the_refine_picture_marks_the_kept_iteration_or_says_none_was() {
+        let dir = std::env::temp_dir().join(format!("pgrd-refine-svg-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("refine.svg");
+        let step = |iteration, batch_loss_m2| fit::RefineStep {
+            iteration,
+            batch_loss_m2,
+            grad_norm: 1.0,
+            failed: 0,
+            train_loss_m2: None,
+        };
+        let mut outcome = fit::RefineOutcome {
+            log_factor: vec![0.0; 3],
+            best_loss_m2: 1.5e-3,
+            initial_loss_m2: 2.0e-3,
+            best_iteration: Some(2),
+            history: vec![step(0, 2.2e-3), step(1, f64::NAN), step(2, 1.4e-3)],
+            config: fit::RefineConfig::default(),
+            wall_s: 1.0,
+        };
+        refine_svg(&path, "rope", &outcome).unwrap();
+        let svg = std::fs::read_to_string(&path).unwrap();
+        assert!(svg.contains("kept: iteration 2, 1.500e-3 m²"), "{svg}");
+        assert!(svg.contains("2.000e-3 m²"));
+        outcome.best_iteration = None;
+        refine_svg(&path, "rope", &outcome).unwrap();
+        let svg = std::fs::read_to_string(&path).unwrap();
+        assert!(svg.contains("no iteration beat it"));
         std::fs::remove_dir_all(&dir).unwrap();
     }
 
