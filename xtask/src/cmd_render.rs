@@ -653,6 +653,13 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
 mod tests {
     use super::*;
 
+    /// A "prediction" that follows the recording exactly: its frames after the window's start.
+    fn recorded_steps(episode: &Episode, window: Window) -> Vec<Vec<Vec3>> {
+        (1..=window.steps)
+            .map(|k| episode.frame(window.start + k).to_vec())
+            .collect()
+    }
+
     /// A fixture episode rendered end to end: the prediction's first frame is the ground
     /// truth's, following the (noisy) tracked positions keeps the masks close, and a
     /// prediction frozen at the start does worse on a moving object.
@@ -671,9 +678,7 @@ mod tests {
             height: 72,
             appearance: Appearance::Fine,
         };
-        let following: Vec<Vec<Vec3>> = (1..=window.steps)
-            .map(|k| episode.frame(window.start + k).to_vec())
-            .collect();
+        let following = recorded_steps(&episode, window);
         let frozen = vec![episode.frame(window.start).to_vec(); window.steps];
         let video = render_video(&truth, &episode, window, &following, &opts).unwrap();
         assert_eq!((video.pred.len(), video.truth.len()), (6, 6));
@@ -743,9 +748,7 @@ mod tests {
             height: 72,
             appearance: Appearance::Fine,
         };
-        let following: Vec<Vec<Vec3>> = (1..=window.steps)
-            .map(|k| episode.frame(window.start + k).to_vec())
-            .collect();
+        let following = recorded_steps(&episode, window);
         let video = render_video(&truth, &episode, window, &following, &opts).unwrap();
         for (p, t) in video.pred.iter().zip(&video.truth) {
             assert_eq!(p.rgb, t.rgb);
