@@ -30,6 +30,7 @@ use scene::{Protocol, Scene};
 use springs::SpringParams;
 use world::{EffectKind, Effects, ObjectKind};
 
+mod page;
 mod records;
 mod summary;
 #[cfg(test)]
@@ -912,6 +913,13 @@ pub fn run_bench(args: &DiagnoseBenchArgs) -> anyhow::Result<BenchSummary> {
     );
     if let Some(path) = &args.json {
         write_json(path, &summary)?;
+        let page = path.with_extension("html");
+        crate::plots::or_warn(
+            serde_json::to_value(&summary)
+                .map_err(anyhow::Error::from)
+                .and_then(|v| page::write(&page, &v)),
+            &page.display().to_string(),
+        );
     }
     Ok(summary)
 }

@@ -409,3 +409,50 @@ fn a_bench_records_its_settings() {
     assert_eq!(s["scales"], "1,4,16,64", "defaults are recorded too");
     assert_eq!(s["pgrd_version"], env!("CARGO_PKG_VERSION"));
 }
+
+/// The bench's page shades a matrix cell green only where its verdicts are right (an in-base
+/// effect's `none` included) and lists every case.
+#[test]
+fn the_page_marks_right_and_wrong_verdicts() {
+    let summary = serde_json::json!({
+        "in_library_accuracy": 0.5, "in_library_cases": [2, 3], "wall_s": 12.0,
+        "confusion": [
+            ["drag", [["none", 1], ["drag", 1], ["unknown", 0]]],
+            ["bending", [["none", 1], ["drag", 0], ["unknown", 0]]],
+        ],
+        "cases": [
+            {"object": "rope", "truth": "drag", "class": "in-library", "expected": "drag",
+             "verdict": "drag", "scale": 4.0, "target_reached": true},
+            {"object": "paper", "truth": "drag", "class": "in-library", "expected": "drag",
+             "verdict": "none", "scale": 16.0, "target_reached": true},
+            {"object": "flag", "truth": "bending", "class": "in-base", "expected": "none",
+             "verdict": "none", "scale": 1.0, "target_reached": false},
+        ],
+    });
+    let dir = std::env::temp_dir().join(format!("pgrd-bench-page-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("bench.html");
+    page::write(&path, &summary).unwrap();
+    let html = std::fs::read_to_string(&path).unwrap();
+    let row = |truth: &str| {
+        let start = html
+            .find(&format!("<tr><td>{truth}</td><td style"))
+            .unwrap();
+        html[start..start + html[start..].find("</tr>").unwrap()].to_string()
+    };
+    // drag: its `none` is wrong (red), its `drag` right (green); bending's `none` is right.
+    let drag = row("drag");
+    let cells: Vec<&str> = drag.split("<td").skip(2).collect();
+    assert!(cells[0].contains("rgba(214,39,40"), "{drag}");
+    assert!(cells[1].contains("rgba(44,160,44"), "{drag}");
+    assert!(
+        row("bending")
+            .split("<td")
+            .nth(2)
+            .unwrap()
+            .contains("rgba(44,160,44")
+    );
+    assert_eq!(html.matches("<tr><td>rope</td>").count(), 1);
+    assert!(html.contains("50 % of 2 cases"));
+    std::fs::remove_dir_all(&dir).ok();
+}
