@@ -165,7 +165,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
         println!("{name:<10} {mde:>10.3} {ch:>22.3} {emd:>10.3}");
     }
     println!(
-        "\nwrote backbone.json, fit.svg (the CMA-ES search), springs.ply (the spring graph), eval_val.json, eval_val.svg (error per step) and final_*.ply per object under {} ({:.1} s)",
+        "\nwrote backbone.json, fit.svg (the CMA-ES search), springs.svg and .ply (the spring graph), eval_val.json, eval_val.svg (error per step) and final_*.ply per object under {} ({:.1} s)",
         args.out.display(),
         t0.elapsed().as_secs_f64()
     );

@@ -272,7 +272,7 @@ pub fn run(args: &FitArgs) -> anyhow::Result<BackboneFile> {
         let bb = warn_if_unconnected(scene, &params, Default::default())?;
         let ply = args.run.join("springs.ply");
         crate::plots::or_warn(
-            write_spring_graph(&ply, scene, &bb),
+            write_spring_graph(&ply, &data.meta.object, scene, &bb),
             &ply.display().to_string(),
         );
     }
@@ -303,7 +303,7 @@ pub fn run(args: &FitArgs) -> anyhow::Result<BackboneFile> {
         &fit_svg.display().to_string(),
     );
     println!(
-        "fitted {} on {} train episodes in {:.1} s: stiffness {:.0} N/m, damping {:.1} N·s/m, threshold {:.4} m, max springs {}, friction {:.3}; loss {:.3e} m² -> {} (and fit.svg, springs.ply)",
+        "fitted {} on {} train episodes in {:.1} s: stiffness {:.0} N/m, damping {:.1} N·s/m, threshold {:.4} m, max springs {}, friction {:.3}; loss {:.3e} m² -> {} (and fit.svg, springs.svg, springs.ply)",
         data.meta.object,
         scenes.len(),
         t0.elapsed().as_secs_f64(),
@@ -406,7 +406,9 @@ mod tests {
         // Its search, drawn beside it.
         let svg = std::fs::read_to_string(dir.join("fit.svg")).unwrap();
         assert!(svg.contains("fit: rope, CMA-ES"), "{svg}");
-        // And its spring graph: every spring an edge between two of its particles.
+        // And its spring graph, drawn too: every spring an edge between two of its particles.
+        let drawn = std::fs::read_to_string(dir.join("springs.svg")).unwrap();
+        assert!(drawn.contains("springs: rope,"), "{drawn}");
         let ply = std::fs::read_to_string(dir.join("springs.ply")).unwrap();
         let count = |element: &str| -> usize {
             let line = ply.lines().find(|l| l.starts_with(element)).unwrap();

@@ -308,12 +308,14 @@ pub fn warn_if_unconnected(
 
 /// Writes `bb`'s spring graph at its rest shape (the scene's start frame) as a PLY with one
 /// vertex per particle and one edge per spring, for a point-cloud viewer (MeshLab, CloudCompare,
-/// Blender): where the threshold joined the object, where it glued touching parts, which
-/// particles hang loose. Colours: held particles blue, free particles without a spring red,
+/// Blender), and the same seen across its thinnest axis as an SVG beside it, for a browser:
+/// where the threshold joined the object, where it glued touching parts, which particles hang
+/// loose. Colours: held particles blue, free particles without a spring red,
 /// the scene's added particles (hidden chain particles, volume fill) light grey, tracked ones
 /// dark grey.
 pub fn write_spring_graph(
     path: &Path,
+    object: &str,
     scene: &Scene,
     bb: &springs::Backbone,
 ) -> anyhow::Result<()> {
@@ -328,7 +330,14 @@ pub fn write_spring_graph(
             },
         )
         .collect();
-    crate::report::write_ply_edges(path, bb.rest_positions(), Some(&colors), bb.springs())
+    crate::report::write_ply_edges(path, bb.rest_positions(), Some(&colors), bb.springs())?;
+    crate::plots::springs_svg(
+        &path.with_extension("svg"),
+        object,
+        bb.rest_positions(),
+        bb.springs(),
+        &colors,
+    )
 }
 
 /// Prints a note when the reference construction glues parts together: some of `scenes` (the

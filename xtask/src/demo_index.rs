@@ -70,9 +70,10 @@ pub fn write(out: &Path, rows: &[Row], toured: bool) -> anyhow::Result<()> {
     for (name, ..) in rows {
         let _ = writeln!(html, "<h2 id=\"{0}\">{0}</h2>", escape(name));
         let file = |f: &str| format!("{name}/{f}");
-        let (fit, eval, springs, pred, truth) = (
+        let (fit, eval, graph, springs, pred, truth) = (
             file("fit.svg"),
             file("eval_val.svg"),
+            file("springs.svg"),
             file("springs.ply"),
             file("final_predicted.ply"),
             file("final_truth.ply"),
@@ -86,10 +87,11 @@ pub fn write(out: &Path, rows: &[Row], toured: bool) -> anyhow::Result<()> {
                     "the fitted backbone's error per step on the val episodes",
                 ),
                 (
-                    &springs,
-                    "the fitted spring graph on the first training episode (MeshLab, Blender; \
-                     loose particles red)",
+                    &graph,
+                    "the fitted spring graph on the first training episode (held particles \
+                     blue, loose ones red)",
                 ),
+                (&springs, "the same graph in 3D (MeshLab, Blender)"),
                 (
                     &pred,
                     "the last predicted step of the first val episode (point cloud)",

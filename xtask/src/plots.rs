@@ -560,6 +560,82 @@ pub fn refine_svg(path: &Path, object: &str, outcome: &fit::RefineOutcome) -> an
     })
 }
 
+/// `springs.svg`: a spring graph seen along the axis on which it is thinnest (a rope from
+/// above, a sheet face-on), at one scale on both axes: springs as thin grey lines, particles as
+/// dots in `colors` (as `springs.ply` has them).
+pub fn springs_svg(
+    path: &Path,
+    title: &str,
+    positions: &[glam::Vec3],
+    edges: &[[u32; 2]],
+    colors: &[[f32; 3]],
+) -> anyhow::Result<()> {
+    let (lo, hi) = positions.iter().fold(
+        (
+            glam::Vec3::splat(f32::INFINITY),
+            glam::Vec3::splat(f32::NEG_INFINITY),
+        ),
+        |(lo, hi), p| (lo.min(*p), hi.max(*p)),
+    );
+    let extent = (hi - lo).to_array();
+    // The two world axes of largest extent, in x, y, z order.
+    let thinnest = (0..3)
+        .min_by(|&a, &b| extent[a].total_cmp(&extent[b]))
+        .unwrap_or(2);
+    let (u, v) = match thinnest {
+        0 => (1, 2),
+        1 => (0, 2),
+        _ => (0, 1),
+    };
+    let names = ["x", "y", "z"];
+    let side = f64::from(extent[u].max(extent[v]).max(1e-6)) * 1.05;
+    let centre = |k: usize| f64::from(lo[k] + hi[k]) / 2.0;
+    let (cu, cv) = (centre(u), centre(v));
+    svg_to(path, (640, 680), |root| {
+        let mut chart = ChartBuilder::on(root)
+            .caption(
+                format!(
+                    "springs: {title}, {} particles, {} springs",
+                    positions.len(),
+                    edges.len()
+                ),
+                ("sans-serif", 16),
+            )
+            .margin(12)
+            .x_label_area_size(32)
+            .y_label_area_size(56)
+            .build_cartesian_2d(
+                cu - side / 2.0..cu + side / 2.0,
+                cv - side / 2.0..cv + side / 2.0,
+            )?;
+        chart
+            .configure_mesh()
+            .x_desc(format!("{}, m", names[u]))
+            .y_desc(format!("{}, m", names[v]))
+            .x_label_formatter(&|x| format!("{x:.2}"))
+            .y_label_formatter(&|y| format!("{y:.2}"))
+            .light_line_style(WHITE.mix(0.0))
+            .draw()?;
+        let at = |i: u32| {
+            let p = positions[i as usize].to_array();
+            (f64::from(p[u]), f64::from(p[v]))
+        };
+        let line = GREY.mix(0.35).stroke_width(1);
+        chart.draw_series(
+            edges
+                .iter()
+                .filter(|[a, b]| (*a as usize) < positions.len() && (*b as usize) < positions.len())
+                .map(|[a, b]| PathElement::new(vec![at(*a), at(*b)], line)),
+        )?;
+        chart.draw_series(positions.iter().zip(colors).enumerate().map(|(i, (_, c))| {
+            let rgb = |x: f32| (x.clamp(0.0, 1.0) * 255.0).round() as u8;
+            let color = RGBColor(rgb(c[0]), rgb(c[1]), rgb(c[2]));
+            Circle::new(at(i as u32), 2, color.filled())
+        }))?;
+        Ok(())
+    })
+}
+
 /// One named curve of a plot; `y[i]` is plotted at `x = x0 + i`.
 pub struct Curve<'a> {
     /// Legend label.
@@ -729,6 +805,23 @@ mod tests {
         refine_svg(&path, "rope", &outcome).unwrap();
         let svg = std::fs::read_to_string(&path).unwrap();
         assert!(svg.contains("no iteration beat it"));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn the_spring_graph_is_seen_across_its_thinnest_axis() {
+        let dir = std::env::temp_dir().join(format!("pgrd-springs-svg-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("springs.svg");
+        // A rope lying along x on the table: seen from above (x against y).
+        let positions: Vec<glam::Vec3> = (0..10)
+            .map(|i| glam::Vec3::new(0.1 * i as f32, 0.01 * (i % 2) as f32, 0.005))
+            .collect();
+        let edges: Vec<[u32; 2]> = (0..9).map(|i| [i, i + 1]).collect();
+        springs_svg(&path, "rope", &positions, &edges, &[[0.3; 3]; 10]).unwrap();
+        let svg = std::fs::read_to_string(&path).unwrap();
+        assert!(svg.contains("10 particles, 9 springs"));
+        assert!(svg.contains("x, m") && svg.contains("y, m") && !svg.contains("z, m"));
         std::fs::remove_dir_all(&dir).unwrap();
     }
 
