@@ -694,6 +694,13 @@ pub fn plot_curves(
 mod tests {
     use super::*;
 
+    /// A fresh directory of this test process for `name`'s pictures.
+    fn scratch(name: &str) -> std::path::PathBuf {
+        let dir = std::env::temp_dir().join(format!("pgrd-{name}-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        dir
+    }
+
     #[test]
     fn the_trailing_mean_skips_what_was_not_scored() {
         let nan = f64::NAN;
@@ -729,8 +736,7 @@ mod tests {
 
     #[test]
     fn the_comparison_counts_the_episodes_below_the_line() {
-        let dir = std::env::temp_dir().join(format!("pgrd-compare-svg-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = scratch("compare-svg");
         let path = dir.join("compare.svg");
         let pairs = [(2.0, 1.5), (1.0, 1.2), (3.0, 2.0)];
         let curves = CompareCurves {
@@ -756,8 +762,7 @@ mod tests {
 
     #[test]
     fn the_chain_picture_labels_every_round() {
-        let dir = std::env::temp_dir().join(format!("pgrd-chain-svg-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = scratch("chain-svg");
         let path = dir.join("chain.svg");
         let steps = vec![
             ("spring-mass".to_string(), 38.5),
@@ -778,8 +783,7 @@ mod tests {
 
     #[test]
     fn the_refine_picture_marks_the_kept_iteration_or_says_none_was() {
-        let dir = std::env::temp_dir().join(format!("pgrd-refine-svg-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = scratch("refine-svg");
         let path = dir.join("refine.svg");
         let step = |iteration, batch_loss_m2| fit::RefineStep {
             iteration,
@@ -810,8 +814,7 @@ mod tests {
 
     #[test]
     fn the_spring_graph_is_seen_across_its_thinnest_axis() {
-        let dir = std::env::temp_dir().join(format!("pgrd-springs-svg-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = scratch("springs-svg");
         let path = dir.join("springs.svg");
         // A rope lying along x on the table: seen from above (x against y).
         let positions: Vec<glam::Vec3> = (0..10)
@@ -850,8 +853,7 @@ mod tests {
 
     #[test]
     fn the_fit_picture_names_its_curves_and_survives_no_finite_loss() {
-        let dir = std::env::temp_dir().join(format!("pgrd-fit-svg-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = scratch("fit-svg");
         let path = dir.join("fit.svg");
         let history = (0..5)
             .map(|i| generation(i, 1e-3 / (i + 1) as f64))
@@ -876,8 +878,7 @@ mod tests {
 
     #[test]
     fn the_training_picture_marks_the_kept_step() {
-        let dir = std::env::temp_dir().join(format!("pgrd-train-svg-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = scratch("train-svg");
         let path = dir.join("train.svg");
         let loss = (0..200)
             .map(|i| 10.0 / (1.0 + i as f64 / 50.0))
